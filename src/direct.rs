@@ -1,0 +1,284 @@
+//! The direct reference solver: one sparse Cholesky of the whole truss
+//! stiffness `K`, and an exact primal–dual active set on the cable slacks.
+//!
+//! `K` never changes when cables go slack (DESIGN.md §1), so the active set
+//! works on the Schur complement of the slack set and keeps the single
+//! factorization: with `S` the slack set and `μ = K_S^{1/2} λ_S`,
+//!
+//! ```text
+//! (I − K_S^{1/2} H_Sᵀ K⁻¹ H_S K_S^{1/2}) μ = −K_S^{1/2} g_S,   g = Hᵀ K⁻¹ b + e0
+//! ```
+//!
+//! whose matrix has its spectrum in `[0, 1]`: a zero pivot there means the
+//! structure becomes a mechanism once those cables are slack. Columns
+//! `K⁻¹ h_c` are computed in batches only for cables that ever enter `S`,
+//! and their Schur entries are cached as `S` changes.
+//!
+//! The set update is the primal–dual active set (semismooth Newton) rule;
+//! if it revisits a set, it switches to Murty's least-index rule, which
+//! terminates for the positive definite Schur matrices met here.
+
+use crate::error::{Error, Result};
+use crate::factor::{lower_csc, FactorError, SparseCholesky};
+use crate::model::Model;
+use faer::linalg::solvers::Solve;
+use faer::Mat;
+use std::collections::HashSet;
+
+/// Width of the column blocks solved at once when building Schur columns.
+const BATCH: usize = 32;
+
+/// The equilibrium found by a solver, in free-dof numbering.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Equilibrium {
+    /// Displacements on free dofs.
+    pub u: Vec<f64>,
+    /// Cable slacks `λ ≥ 0`, indexed like `Model::cables`.
+    pub lambda: Vec<f64>,
+    /// Active-set iterations (direct) or solver iterations (DD).
+    pub iterations: usize,
+}
+
+/// Timings and sizes of the direct factorization, for reports.
+#[derive(Debug, Clone, Default)]
+pub struct DirectStats {
+    pub n: usize,
+    pub nnz_k: usize,
+    pub nnz_l: usize,
+    pub assembly_s: f64,
+    pub factor_s: f64,
+    pub supernodal: bool,
+}
+
+/// Maps a factorization pivot failure on the whole structure to a message
+/// naming the node and component.
+pub(crate) fn mechanism_error(model: &Model, dof: usize, what: &str) -> Error {
+    let (node, c) = model.dof_owner(dof);
+    let comp = ["x", "y", "z"][c];
+    Error::Mechanism(format!(
+        "{what} has no stiffness at node {node} component {comp}: it is not supported well enough or is a mechanism"
+    ))
+}
+
+/// Factorization of the whole structure plus the cable active-set cache.
+pub struct DirectSolver {
+    chol: SparseCholesky,
+    stats: DirectStats,
+    /// Cables that have entered a slack set so far (cache order).
+    cached: Vec<usize>,
+    /// Position of each cable in `cached`, or `usize::MAX`.
+    cache_pos: Vec<usize>,
+    /// Dense symmetric `K_c^{1/2} h_cᵀ K⁻¹ h_d K_d^{1/2}` over `cached`.
+    schur: Mat<f64>,
+}
+
+impl DirectSolver {
+    /// Assembles `K` and factors it once.
+    pub fn new(model: &Model) -> Result<DirectSolver> {
+        let t = std::time::Instant::now();
+        let all: Vec<usize> = (0..model.elements.len()).collect();
+        let trip = model.stiffness_triplets(&all, Some);
+        let k = lower_csc(model.n_free, &trip).map_err(|e| Error::Numerical(format!("{e:?}")))?;
+        let assembly_s = t.elapsed().as_secs_f64();
+        let t = std::time::Instant::now();
+        if model.n_free == 0 {
+            return Err(Error::Mechanism("every dof is blocked: nothing to solve".into()));
+        }
+        let chol = SparseCholesky::factor(&k, BATCH).map_err(|e| match e {
+            FactorError::Pivot { dof, negative: true, .. } if model.effects.geometric_stiffness => Error::Mechanism(format!(
+                "the stiffness with geometric stiffness is not positive definite (negative pivot at node {} component {})",
+                model.dof_owner(dof).0,
+                ["x", "y", "z"][model.dof_owner(dof).1]
+            )),
+            FactorError::Pivot { dof, .. } => mechanism_error(model, dof, "the structure"),
+            FactorError::Internal(m) => Error::Numerical(m),
+        })?;
+        let stats = DirectStats {
+            n: model.n_free,
+            nnz_k: k.compute_nnz(),
+            nnz_l: chol.nnz_l(),
+            assembly_s,
+            factor_s: t.elapsed().as_secs_f64(),
+            supernodal: chol.is_supernodal(),
+        };
+        Ok(DirectSolver {
+            chol,
+            stats,
+            cached: Vec::new(),
+            cache_pos: vec![usize::MAX; model.cables.len()],
+            schur: Mat::zeros(0, 0),
+        })
+    }
+
+    /// Sizes and timings of the factorization.
+    pub fn stats(&self) -> &DirectStats {
+        &self.stats
+    }
+
+    /// Solves `K x = rhs` in place with the cached factor.
+    pub fn solve_linear(&mut self, rhs: &mut [f64]) {
+        self.chol.solve_in_place(rhs);
+    }
+
+    /// Solves the equilibrium for the right-hand side `b = f − H k e0`
+    /// (see [`Model::rhs`]), with exact cable complementarity.
+    pub fn solve(&mut self, model: &Model, b: &[f64]) -> Result<Equilibrium> {
+        let nc = model.cables.len();
+        let mut u0 = b.to_vec();
+        self.chol.solve_in_place(&mut u0);
+        if nc == 0 {
+            return Ok(Equilibrium { u: u0, lambda: Vec::new(), iterations: 0 });
+        }
+        // g_c = e_c(u0) + e0_c: cable strain with every cable taut.
+        let g0: Vec<f64> = model
+            .cables
+            .iter()
+            .map(|&e| model.elongation(e, &u0) + model.elements[e].e0)
+            .collect();
+        let strain_scale = g0.iter().fold(0.0f64, |m, v| m.max(v.abs())).max(f64::MIN_POSITIVE);
+        let tol = 1e-13 * strain_scale;
+
+        let mut slack: Vec<bool> = g0.iter().map(|&g| g < -tol).collect();
+        let mut seen: HashSet<Vec<bool>> = HashSet::new();
+        let mut murty = false;
+        let max_iter = 20 * nc + 100;
+        let mut u = u0.clone();
+        let mut lambda = vec![0.0; nc];
+        for it in 1..=max_iter {
+            let set: Vec<usize> = (0..nc).filter(|&c| slack[c]).collect();
+            lambda.iter_mut().for_each(|l| *l = 0.0);
+            if !set.is_empty() {
+                self.extend_cache(model, &set);
+                let mu = self.solve_schur(model, &set, &g0)?;
+                for (i, &c) in set.iter().enumerate() {
+                    lambda[c] = mu[i] / model.elements[model.cables[c]].k.sqrt();
+                }
+            }
+            // u = K⁻¹ (b − Σ h_c k_c λ_c)
+            u.copy_from_slice(b);
+            for &c in &set {
+                let e = model.cables[c];
+                model.add_h(e, -model.elements[e].k * lambda[c], &mut u);
+            }
+            self.chol.solve_in_place(&mut u);
+            if u.iter().any(|v| !v.is_finite()) {
+                return Err(Error::Numerical("direct solve produced a non-finite displacement".into()));
+            }
+
+            // Violations: slack cables with λ < 0, taut cables with g < 0.
+            let mut changed = false;
+            let mut first_violation = None;
+            let mut next = slack.clone();
+            for c in 0..nc {
+                let e = model.cables[c];
+                let viol = if slack[c] {
+                    lambda[c] < -tol
+                } else {
+                    model.elongation(e, &u) + model.elements[e].e0 < -tol
+                };
+                if viol {
+                    if first_violation.is_none() {
+                        first_violation = Some(c);
+                    }
+                    next[c] = !slack[c];
+                    changed = true;
+                }
+            }
+            if !changed {
+                for l in lambda.iter_mut() {
+                    *l = l.max(0.0);
+                }
+                return Ok(Equilibrium { u, lambda, iterations: it });
+            }
+            if !murty && !seen.insert(slack.clone()) {
+                murty = true;
+            }
+            if murty {
+                let c = first_violation.unwrap_or(0);
+                slack[c] = !slack[c];
+            } else {
+                slack = next;
+            }
+        }
+        Err(Error::Numerical(format!("cable active set did not settle in {max_iter} iterations")))
+    }
+
+    /// Adds Schur columns for cables of `set` not yet cached.
+    fn extend_cache(&mut self, model: &Model, set: &[usize]) {
+        let new: Vec<usize> = set.iter().copied().filter(|&c| self.cache_pos[c] == usize::MAX).collect();
+        if new.is_empty() {
+            return;
+        }
+        let n = model.n_free;
+        let old = self.cached.len();
+        for &c in &new {
+            self.cache_pos[c] = self.cached.len();
+            self.cached.push(c);
+        }
+        let m = self.cached.len();
+        let mut schur = Mat::<f64>::zeros(m, m);
+        for j in 0..old {
+            for i in 0..old {
+                schur[(i, j)] = self.schur[(i, j)];
+            }
+        }
+        let mut block = vec![0.0; n * BATCH];
+        for chunk in new.chunks(BATCH) {
+            let w = chunk.len();
+            block[..n * w].iter_mut().for_each(|v| *v = 0.0);
+            for (j, &c) in chunk.iter().enumerate() {
+                let e = model.cables[c];
+                model.add_h(e, model.elements[e].k.sqrt(), &mut block[j * n..(j + 1) * n]);
+            }
+            self.chol.solve_columns(&mut block[..n * w], w);
+            for (j, &c) in chunk.iter().enumerate() {
+                let col = &block[j * n..(j + 1) * n];
+                let pj = self.cache_pos[c];
+                for (pi, &d) in self.cached.iter().enumerate() {
+                    let e = model.cables[d];
+                    let v = model.elongation(e, col) * model.elements[e].k.sqrt();
+                    schur[(pi, pj)] = v;
+                    schur[(pj, pi)] = v;
+                }
+            }
+        }
+        self.schur = schur;
+    }
+
+    /// Solves `(I − S_SS) μ = −K^{1/2} g_S` for the slack set.
+    fn solve_schur(&self, model: &Model, set: &[usize], g0: &[f64]) -> Result<Vec<f64>> {
+        let m = set.len();
+        let mut a = Mat::<f64>::zeros(m, m);
+        for (j, &cj) in set.iter().enumerate() {
+            for (i, &ci) in set.iter().enumerate() {
+                let s = self.schur[(self.cache_pos[ci], self.cache_pos[cj])];
+                a[(i, j)] = if i == j { 1.0 - s } else { -s };
+            }
+        }
+        let mut rhs = Mat::<f64>::zeros(m, 1);
+        for (i, &c) in set.iter().enumerate() {
+            rhs[(i, 0)] = -model.elements[model.cables[c]].k.sqrt() * g0[c];
+        }
+        // Spectrum in [0, 1]: a pivot below 1e-10 is a mechanism, not noise.
+        let min_diag = (0..m).map(|i| a[(i, i)]).fold(f64::INFINITY, f64::min);
+        let llt = a.llt(faer::Side::Lower);
+        let ok = match &llt {
+            Ok(l) => {
+                let lm = l.L();
+                (0..m).all(|i| lm[(i, i)] * lm[(i, i)] > 1e-10)
+            }
+            Err(_) => false,
+        };
+        if !ok || min_diag <= 1e-10 {
+            let names: Vec<String> = set.iter().take(8).map(|&c| model.cables[c].to_string()).collect();
+            return Err(Error::Mechanism(format!(
+                "the structure becomes a mechanism when its {m} slack cables are removed (elements {}{})",
+                names.join(", "),
+                if m > 8 { ", ..." } else { "" }
+            )));
+        }
+        let x = llt.expect("checked above").solve(&rhs);
+        Ok((0..m).map(|i| x[(i, 0)]).collect())
+    }
+}
+

@@ -1,0 +1,207 @@
+//! Cached sparse Cholesky factorization (faer 0.24 low-level API).
+//!
+//! Symbolic analysis (AMD ordering, supernodal when it pays) and the numeric
+//! `LLᵀ` are done once; solves then run on preallocated scratch and make no
+//! heap allocation (`Par::Seq`: parallelism goes over subdomains instead).
+//!
+//! faer's LLT only reports *non-positive* pivots; a singular matrix factored
+//! in floating point usually gives a tiny positive pivot instead. We therefore
+//! check every pivot against the matrix diagonal and report the first one
+//! whose relative size is below [`PIVOT_RATIO`], with its dof in the caller's
+//! numbering. Dynamic regularization is never used (faer 0.24.4 stores the
+//! regularised supernodal pivots wrongly; see shared notes).
+
+use faer::dyn_stack::{MemBuffer, MemStack};
+use faer::reborrow::ReborrowMut;
+use faer::linalg::cholesky::llt::factor::LltRegularization;
+use faer::sparse::linalg::cholesky::{
+    factorize_symbolic_cholesky, CholeskySymbolicParams, LltRef, SymbolicCholesky,
+    SymbolicCholeskyRaw, SymmetricOrdering,
+};
+use faer::sparse::{SparseColMat, Triplet};
+use faer::{Conj, MatMut, Par, Side, Spec};
+
+/// A pivot `L_jj²` smaller than this fraction of `A_jj` means the matrix is
+/// numerically singular (a mechanism). Stiffness contrasts of 1e8 give
+/// ratios around 1e-8, so this leaves a wide margin on both sides.
+pub const PIVOT_RATIO: f64 = 1e-12;
+
+/// Why a factorization failed.
+#[derive(Debug, Clone, PartialEq)]
+pub enum FactorError {
+    /// Pivot at matrix row `dof` (caller numbering) is non-positive or
+    /// negligible: the matrix is singular or indefinite there.
+    Pivot { dof: usize, ratio: f64, negative: bool },
+    /// Out of memory or another internal failure.
+    Internal(String),
+}
+
+/// Symmetric positive definite sparse matrix, factored once.
+pub struct SparseCholesky {
+    n: usize,
+    symbolic: SymbolicCholesky<usize>,
+    l_values: Vec<f64>,
+    scratch: MemBuffer,
+    scratch_cols: usize,
+}
+
+impl std::fmt::Debug for SparseCholesky {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("SparseCholesky").field("n", &self.n).field("nnz_l", &self.nnz_l()).finish()
+    }
+}
+
+/// Builds a lower-triangular CSC matrix from triplets (duplicates are summed).
+pub fn lower_csc(n: usize, triplets: &[(usize, usize, f64)]) -> Result<SparseColMat<usize, f64>, FactorError> {
+    let t: Vec<Triplet<usize, usize, f64>> = triplets.iter().map(|&(r, c, v)| Triplet::new(r, c, v)).collect();
+    SparseColMat::try_new_from_triplets(n, n, &t).map_err(|e| FactorError::Internal(format!("{e:?}")))
+}
+
+impl SparseCholesky {
+    /// Factors the SPD matrix whose lower triangle is `lower`.
+    /// Scratch is sized for solves of up to `max_rhs` columns at once.
+    pub fn factor(lower: &SparseColMat<usize, f64>, max_rhs: usize) -> Result<Self, FactorError> {
+        let n = lower.nrows();
+        let symbolic = factorize_symbolic_cholesky(
+            lower.symbolic(),
+            Side::Lower,
+            SymmetricOrdering::Amd,
+            CholeskySymbolicParams::default(),
+        )
+        .map_err(|e| FactorError::Internal(format!("symbolic analysis: {e:?}")))?;
+        let mut l_values = vec![0.0f64; symbolic.len_val()];
+        let par = Par::Seq;
+        let fact_req = symbolic.factorize_numeric_llt_scratch::<f64>(par, Spec::default());
+        let mut fbuf = MemBuffer::try_new(fact_req).map_err(|_| FactorError::Internal("out of memory".into()))?;
+        let res = symbolic.factorize_numeric_llt(
+            &mut l_values,
+            lower.as_ref(),
+            Side::Lower,
+            LltRegularization::default(),
+            par,
+            MemStack::new(&mut fbuf),
+            Spec::default(),
+        );
+        drop(fbuf);
+        let perm_fwd: Vec<usize> = match symbolic.perm() {
+            Some(p) => p.arrays().0.to_vec(),
+            None => (0..n).collect(),
+        };
+        if let Err(faer::linalg::cholesky::llt::factor::LltError::NonPositivePivot { index }) = res {
+            return Err(FactorError::Pivot { dof: perm_fwd[index.min(n - 1)], ratio: 0.0, negative: true });
+        }
+        let max_rhs = max_rhs.max(1);
+        let req = symbolic.solve_in_place_scratch::<f64>(max_rhs, par);
+        let scratch = MemBuffer::try_new(req).map_err(|_| FactorError::Internal("out of memory".into()))?;
+        let this = SparseCholesky { n, symbolic, l_values, scratch, scratch_cols: max_rhs };
+        this.check_pivots(lower, &perm_fwd)?;
+        Ok(this)
+    }
+
+    /// Compares each pivot `L_jj²` with `A_jj` (both in permuted order).
+    fn check_pivots(&self, lower: &SparseColMat<usize, f64>, perm_fwd: &[usize]) -> Result<(), FactorError> {
+        let mut adiag = vec![0.0; self.n];
+        let a = lower.as_ref();
+        for j in 0..self.n {
+            for (i, v) in a.row_idx_of_col(j).zip(a.val_of_col(j)) {
+                if i == j {
+                    adiag[j] += *v;
+                }
+            }
+        }
+        let scale = adiag.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        let ldiag = self.l_diagonal();
+        for (p, &l) in ldiag.iter().enumerate() {
+            let orig = perm_fwd[p];
+            // Relative to the row's own diagonal, and absolutely to the
+            // largest one: an all-zero row is a mechanism too.
+            let ad = adiag[orig].max(f64::MIN_POSITIVE);
+            let ratio = (l * l) / ad;
+            if !(ratio >= PIVOT_RATIO) || adiag[orig] <= PIVOT_RATIO * scale * 1e-4 {
+                return Err(FactorError::Pivot { dof: orig, ratio, negative: false });
+            }
+        }
+        Ok(())
+    }
+
+    /// Diagonal of `L`, in the permuted order.
+    fn l_diagonal(&self) -> Vec<f64> {
+        let mut d = vec![0.0; self.n];
+        match self.symbolic.raw() {
+            SymbolicCholeskyRaw::Simplicial(s) => {
+                let cp = s.col_ptr();
+                let ri = s.row_idx();
+                for j in 0..self.n {
+                    for p in cp[j]..cp[j + 1] {
+                        if ri[p] == j {
+                            d[j] = self.l_values[p];
+                        }
+                    }
+                }
+            }
+            SymbolicCholeskyRaw::Supernodal(s) => {
+                let begin = s.supernode_begin();
+                let end = s.supernode_end();
+                let cpv = s.col_ptr_for_val();
+                for sn in 0..s.n_supernodes() {
+                    let ncols = end[sn] - begin[sn];
+                    let len = cpv[sn + 1] - cpv[sn];
+                    let nrows = len / ncols.max(1);
+                    let block = &self.l_values[cpv[sn]..cpv[sn + 1]];
+                    for j in 0..ncols {
+                        d[begin[sn] + j] = block[j * nrows + j];
+                    }
+                }
+            }
+        }
+        d
+    }
+
+    /// Matrix dimension.
+    pub fn n(&self) -> usize {
+        self.n
+    }
+
+    /// Number of stored entries of `L`.
+    pub fn nnz_l(&self) -> usize {
+        self.l_values.len()
+    }
+
+    /// True when faer chose the supernodal kernel.
+    pub fn is_supernodal(&self) -> bool {
+        matches!(self.symbolic.raw(), SymbolicCholeskyRaw::Supernodal(_))
+    }
+
+    /// Solves `A x = rhs` in place for one right-hand side. Allocation free.
+    pub fn solve_in_place(&mut self, rhs: &mut [f64]) {
+        debug_assert_eq!(rhs.len(), self.n);
+        let n = self.n;
+        let mat = MatMut::from_column_major_slice_mut(rhs, n, 1);
+        self.solve_block(mat);
+    }
+
+    /// Solves `A X = B` in place for a block of columns (column major),
+    /// in chunks of at most the scratch width. Allocation free.
+    pub fn solve_block(&mut self, mut rhs: MatMut<'_, f64>) {
+        let k = rhs.ncols();
+        let mut j = 0;
+        while j < k {
+            let w = (k - j).min(self.scratch_cols);
+            let block = rhs.rb_mut().subcols_mut(j, w);
+            let llt = LltRef::<'_, usize, f64>::new(&self.symbolic, &self.l_values);
+            llt.solve_in_place_with_conj(Conj::No, block, Par::Seq, MemStack::new(&mut self.scratch));
+            j += w;
+        }
+    }
+
+    /// Solves for a column-major block stored in a slice of `n * k` values.
+    pub fn solve_columns(&mut self, data: &mut [f64], k: usize) {
+        let n = self.n;
+        self.solve_block(MatMut::from_column_major_slice_mut(data, n, k));
+    }
+
+    /// Bytes held by the factor and its scratch (for memory reports).
+    pub fn bytes(&self) -> usize {
+        self.l_values.len() * 8 + self.n * 16
+    }
+}

@@ -1,0 +1,339 @@
+//! The mechanical model of DESIGN.md §1, built once from a validated scene:
+//! free-dof numbering, element geometry (`n_e`, `L_e`, `k_e = EA/L`,
+//! prestrain `e0 = t0/k`) and the effects that are actually simulated.
+//!
+//! Everything downstream (direct solver, decomposition, subdomain operators)
+//! works on the free dofs numbered here; blocked components carry [`FIXED`].
+
+use crate::error::{Error, Result};
+use crate::scene::{Effects, ElementKind, Scene};
+
+/// Marker for a blocked (supported) displacement component.
+pub const FIXED: usize = usize::MAX;
+
+/// One element of the truss, with everything the solvers need precomputed.
+#[derive(Debug, Clone)]
+pub struct Element {
+    pub a: usize,
+    pub b: usize,
+    /// Unit vector from `a` to `b`.
+    pub dir: [f64; 3],
+    pub length: f64,
+    /// Axial stiffness `EA / L`.
+    pub k: f64,
+    /// Prestress (tension positive); 0 when the `prestress` effect is off.
+    pub t0: f64,
+    /// Prestrain `t0 / k`.
+    pub e0: f64,
+    pub kind: ElementKind,
+    /// True for a cable when `unilateral_cables` is simulated.
+    pub unilateral: bool,
+    /// Transverse geometric stiffness `t0 / L` (0 unless `geometric_stiffness`).
+    pub geo: f64,
+}
+
+impl Element {
+    /// The 3×3 block `k n nᵀ + g (I − n nᵀ)`; the element matrix is
+    /// `[[G, −G], [−G, G]]` on the dofs of `(a, b)`.
+    pub fn block(&self) -> [[f64; 3]; 3] {
+        let n = self.dir;
+        let mut g = [[0.0; 3]; 3];
+        for i in 0..3 {
+            for j in 0..3 {
+                let nn = n[i] * n[j];
+                let id = if i == j { 1.0 } else { 0.0 };
+                g[i][j] = self.k * nn + self.geo * (id - nn);
+            }
+        }
+        g
+    }
+}
+
+/// The assembled-free description of the structure.
+#[derive(Debug, Clone)]
+pub struct Model {
+    pub name: String,
+    pub coords: Vec<[f64; 3]>,
+    /// Free-dof index of each node component, or [`FIXED`].
+    pub node_dofs: Vec<[usize; 3]>,
+    pub n_free: usize,
+    pub elements: Vec<Element>,
+    /// The effects that are simulated (declared and applicable).
+    pub effects: Effects,
+    /// Declared effects that were not applied, and why.
+    pub notes: Vec<String>,
+    /// Indices of the unilateral cables, in element order.
+    pub cables: Vec<usize>,
+    /// External nodal forces on free dofs, one vector per load case
+    /// (case 0 is `[loads]` plus self-weight).
+    pub load_cases: Vec<Vec<f64>>,
+    /// Names of the load cases.
+    pub load_case_names: Vec<String>,
+}
+
+impl Model {
+    /// Validates the scene and builds the model.
+    pub fn from_scene(scene: &Scene) -> Result<Model> {
+        scene.validate()?;
+        let nn = scene.nodes.x.len();
+        let coords: Vec<[f64; 3]> =
+            (0..nn).map(|i| [scene.nodes.x[i], scene.nodes.y[i], scene.nodes.z[i]]).collect();
+
+        let mut blocked = vec![[false; 3]; nn];
+        for (i, (&node, dofs)) in scene.supports.node.iter().zip(&scene.supports.dofs).enumerate() {
+            for c in dofs.chars() {
+                let d = match c {
+                    'x' => 0,
+                    'y' => 1,
+                    'z' => 2,
+                    _ => {
+                        return Err(Error::input(
+                            "supports.dofs",
+                            Some(i),
+                            format!("unknown component '{c}' (expected any of x, y, z)"),
+                        ))
+                    }
+                };
+                blocked[node][d] = true;
+            }
+        }
+        // A node no element touches has no stiffness at all: name it here,
+        // before a factorization reports an anonymous zero pivot.
+        let mut used = vec![false; nn];
+        for (&a, &b) in scene.elements.a.iter().zip(&scene.elements.b) {
+            used[a] = true;
+            used[b] = true;
+        }
+        let mut node_dofs = vec![[FIXED; 3]; nn];
+        let mut n_free = 0;
+        for i in 0..nn {
+            for d in 0..3 {
+                if !blocked[i][d] {
+                    if !used[i] {
+                        return Err(Error::Mechanism(format!(
+                            "node {i} is attached to no element and not fully supported"
+                        )));
+                    }
+                    node_dofs[i][d] = n_free;
+                    n_free += 1;
+                }
+            }
+        }
+
+        let mut effects = scene.effects;
+        let mut notes = Vec::new();
+        let ne = scene.elements.a.len();
+        let has_cables = scene.elements.kind.iter().any(|k| *k == ElementKind::Cable);
+        let t0_of = |e: usize| scene.elements.t0.get(e).copied().unwrap_or(0.0);
+        let has_t0 = (0..ne).any(|e| t0_of(e) != 0.0);
+        if effects.unilateral_cables && !has_cables {
+            effects.unilateral_cables = false;
+            notes.push("unilateral_cables declared but the scene has no cables: cable stage not run".into());
+        }
+        if effects.prestress && !has_t0 {
+            effects.prestress = false;
+            notes.push("prestress declared but every t0 is zero: no prestrain load".into());
+        }
+        if effects.geometric_stiffness && !has_t0 {
+            effects.geometric_stiffness = false;
+            notes.push("geometric_stiffness declared but every t0 is zero: K_G is zero".into());
+        }
+
+        let mut elements = Vec::with_capacity(ne);
+        let mut cables = Vec::new();
+        for e in 0..ne {
+            let (a, b) = (scene.elements.a[e], scene.elements.b[e]);
+            let d = [coords[b][0] - coords[a][0], coords[b][1] - coords[a][1], coords[b][2] - coords[a][2]];
+            let length = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+            let dir = [d[0] / length, d[1] / length, d[2] / length];
+            let k = scene.elements.ea[e] / length;
+            let kind = scene.elements.kind[e];
+            let t0 = t0_of(e);
+            let (t0_eff, e0) = if effects.prestress { (t0, t0 / k) } else { (0.0, 0.0) };
+            let geo = if effects.geometric_stiffness { t0 / length } else { 0.0 };
+            let unilateral = effects.unilateral_cables && kind == ElementKind::Cable;
+            if unilateral {
+                cables.push(e);
+            }
+            elements.push(Element { a, b, dir, length, k, t0: t0_eff, e0, kind, unilateral, geo });
+        }
+
+        let mut model = Model {
+            name: scene.scene.name.clone(),
+            coords,
+            node_dofs,
+            n_free,
+            elements,
+            effects,
+            notes,
+            cables,
+            load_cases: Vec::new(),
+            load_case_names: Vec::new(),
+        };
+
+        let mut f0 = model.nodal_forces(&scene.loads.node, &scene.loads.fx, &scene.loads.fy, &scene.loads.fz);
+        if effects.self_weight {
+            let g = scene.scene.gravity.unwrap_or([0.0, 0.0, -9.81]);
+            for e in 0..ne {
+                let el = &model.elements[e];
+                let w = scene.elements.mass_per_length[e] * el.length * 0.5;
+                for node in [el.a, el.b] {
+                    for d in 0..3 {
+                        let dof = model.node_dofs[node][d];
+                        if dof != FIXED {
+                            f0[dof] += w * g[d];
+                        }
+                    }
+                }
+            }
+        }
+        model.load_cases.push(f0);
+        model.load_case_names.push(if scene.load_cases.is_empty() { "loads".into() } else { "loads".into() });
+        for lc in &scene.load_cases {
+            let f = model.nodal_forces(&lc.node, &lc.fx, &lc.fy, &lc.fz);
+            model.load_cases.push(f);
+            model.load_case_names.push(lc.name.clone());
+        }
+        Ok(model)
+    }
+
+    /// Free-dof vector of nodal forces; missing component arrays count as 0.
+    pub fn nodal_forces(&self, node: &[usize], fx: &[f64], fy: &[f64], fz: &[f64]) -> Vec<f64> {
+        let mut f = vec![0.0; self.n_free];
+        for (i, &n) in node.iter().enumerate() {
+            let comp = [fx.get(i), fy.get(i), fz.get(i)];
+            for d in 0..3 {
+                let dof = self.node_dofs[n][d];
+                if dof != FIXED {
+                    f[dof] += comp[d].copied().unwrap_or(0.0);
+                }
+            }
+        }
+        f
+    }
+
+    /// The 6 free-dof indices of element `e` (`a` then `b`), [`FIXED`] if blocked.
+    #[inline]
+    pub fn element_dofs(&self, e: usize) -> [usize; 6] {
+        let el = &self.elements[e];
+        let (da, db) = (self.node_dofs[el.a], self.node_dofs[el.b]);
+        [da[0], da[1], da[2], db[0], db[1], db[2]]
+    }
+
+    /// Right-hand side `b = f − Σ_e H_e k_e e0_e` for an external force `f`.
+    pub fn rhs(&self, f_ext: &[f64]) -> Vec<f64> {
+        let mut b = f_ext.to_vec();
+        if self.effects.prestress {
+            for e in 0..self.elements.len() {
+                let el = &self.elements[e];
+                self.add_h(e, -el.k * el.e0, &mut b);
+            }
+        }
+        b
+    }
+
+    /// `out += H_e * coef` on free dofs (nodal forces of a unit tension).
+    #[inline]
+    pub fn add_h(&self, e: usize, coef: f64, out: &mut [f64]) {
+        let dofs = self.element_dofs(e);
+        let n = self.elements[e].dir;
+        for d in 0..3 {
+            if dofs[d] != FIXED {
+                out[dofs[d]] -= n[d] * coef;
+            }
+            if dofs[3 + d] != FIXED {
+                out[dofs[3 + d]] += n[d] * coef;
+            }
+        }
+    }
+
+    /// Elongation `e = n · (u_b − u_a)` from a free-dof displacement.
+    #[inline]
+    pub fn elongation(&self, e: usize, u: &[f64]) -> f64 {
+        let dofs = self.element_dofs(e);
+        let n = self.elements[e].dir;
+        let mut s = 0.0;
+        for d in 0..3 {
+            if dofs[3 + d] != FIXED {
+                s += n[d] * u[dofs[3 + d]];
+            }
+            if dofs[d] != FIXED {
+                s -= n[d] * u[dofs[d]];
+            }
+        }
+        s
+    }
+
+    /// Lower-triangle triplets `(row, col, value)` of the stiffness of the
+    /// given elements, in the numbering `local(dof)` (None = not in this matrix).
+    pub fn stiffness_triplets(
+        &self,
+        elements: &[usize],
+        local: impl Fn(usize) -> Option<usize>,
+    ) -> Vec<(usize, usize, f64)> {
+        let mut t = Vec::with_capacity(elements.len() * 21);
+        for &e in elements {
+            let g = self.elements[e].block();
+            let dofs = self.element_dofs(e);
+            let loc: [Option<usize>; 6] =
+                std::array::from_fn(|i| if dofs[i] == FIXED { None } else { local(dofs[i]) });
+            for i in 0..6 {
+                let Some(r) = loc[i] else { continue };
+                for j in 0..6 {
+                    let Some(c) = loc[j] else { continue };
+                    if r < c {
+                        continue;
+                    }
+                    let s = if (i < 3) == (j < 3) { 1.0 } else { -1.0 };
+                    let v = s * g[i % 3][j % 3];
+                    t.push((r, c, v));
+                }
+            }
+        }
+        t
+    }
+
+    /// Tensions from displacements and cable slacks (λ indexed like `cables`).
+    /// A slack cable reports exactly 0.
+    pub fn tensions(&self, u: &[f64], lambda: &[f64]) -> Vec<f64> {
+        let mut t: Vec<f64> = (0..self.elements.len())
+            .map(|e| {
+                let el = &self.elements[e];
+                el.k * (self.elongation(e, u) + el.e0)
+            })
+            .collect();
+        for (c, &e) in self.cables.iter().enumerate() {
+            if lambda[c] > 0.0 {
+                t[e] = 0.0;
+            } else {
+                t[e] = t[e].max(0.0);
+            }
+        }
+        t
+    }
+
+    /// Per-node displacements (zeros on blocked components).
+    pub fn node_displacements(&self, u: &[f64]) -> Vec<[f64; 3]> {
+        self.node_dofs
+            .iter()
+            .map(|d| std::array::from_fn(|i| if d[i] == FIXED { 0.0 } else { u[d[i]] }))
+            .collect()
+    }
+
+    /// Node owning free dof `dof` and its component (for error messages).
+    pub fn dof_owner(&self, dof: usize) -> (usize, usize) {
+        for (n, d) in self.node_dofs.iter().enumerate() {
+            for c in 0..3 {
+                if d[c] == dof {
+                    return (n, c);
+                }
+            }
+        }
+        (usize::MAX, 0)
+    }
+
+    /// A displacement scale for relative measures: the largest element length.
+    pub fn length_scale(&self) -> f64 {
+        self.elements.iter().map(|e| e.length).fold(0.0, f64::max)
+    }
+}

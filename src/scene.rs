@@ -1,0 +1,476 @@
+//! The scene: the public input format of SCENE.md (TOML or JSON, one schema),
+//! plus the additions of nsdd (load cases, load path). Field names are a
+//! contract with users: add, never rename.
+//!
+//! Reading a scene never trusts it: [`Scene::validate`] checks every field
+//! before any computation and names the field and index of the first problem.
+
+use serde::{Deserialize, Serialize};
+
+/// A whole scene, as in SCENE.md.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+pub struct Scene {
+    #[serde(default)]
+    pub scene: SceneInfo,
+    #[serde(default)]
+    pub effects: Effects,
+    #[serde(default)]
+    pub solver: SolverSettings,
+    pub nodes: Nodes,
+    pub elements: Elements,
+    #[serde(default)]
+    pub supports: Supports,
+    #[serde(default)]
+    pub loads: Loads,
+    /// Extra load cases, solved on the same factorizations (nsdd addition).
+    /// When present, `loads` is load case 0 and these follow.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub load_cases: Vec<LoadCase>,
+    /// Quasi-static load path in load-factor steps (nsdd addition).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub load_path: Option<LoadPath>,
+}
+
+/// `[scene]`: name and, for self-weight, gravity.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+pub struct SceneInfo {
+    #[serde(default)]
+    pub name: String,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub gravity: Option<[f64; 3]>,
+}
+
+/// `[effects]`: what the scene calls for. Absent means false.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+pub struct Effects {
+    #[serde(default)]
+    pub unilateral_cables: bool,
+    #[serde(default)]
+    pub prestress: bool,
+    #[serde(default)]
+    pub geometric_stiffness: bool,
+    #[serde(default)]
+    pub self_weight: bool,
+}
+
+impl Effects {
+    /// Names of the effects that are on, in SCENE.md order.
+    pub fn names(&self) -> Vec<&'static str> {
+        let mut v = Vec::new();
+        if self.unilateral_cables {
+            v.push("unilateral_cables");
+        }
+        if self.prestress {
+            v.push("prestress");
+        }
+        if self.geometric_stiffness {
+            v.push("geometric_stiffness");
+        }
+        if self.self_weight {
+            v.push("self_weight");
+        }
+        v
+    }
+}
+
+/// Solution method.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default, Hash)]
+#[serde(rename_all = "lowercase")]
+pub enum Method {
+    /// One sparse Cholesky of the whole structure, exact active set on cables.
+    #[default]
+    Direct,
+    /// The paper's iteration without the macro (coarse) space.
+    Monolevel,
+    /// The paper's iteration with the kernel-enriched macro space.
+    Multilevel,
+}
+
+impl Method {
+    pub fn name(&self) -> &'static str {
+        match self {
+            Method::Direct => "direct",
+            Method::Monolevel => "monolevel",
+            Method::Multilevel => "multilevel",
+        }
+    }
+}
+
+impl std::str::FromStr for Method {
+    type Err = String;
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        match s {
+            "direct" => Ok(Method::Direct),
+            "monolevel" => Ok(Method::Monolevel),
+            "multilevel" => Ok(Method::Multilevel),
+            _ => Err(format!("unknown method '{s}' (expected direct, monolevel or multilevel)")),
+        }
+    }
+}
+
+/// The `d` of the local stage: `"auto"` or a positive number.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub enum SearchDirection {
+    #[default]
+    Auto,
+    Value(f64),
+}
+
+impl Serialize for SearchDirection {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> std::result::Result<S::Ok, S::Error> {
+        match self {
+            SearchDirection::Auto => s.serialize_str("auto"),
+            SearchDirection::Value(v) => s.serialize_f64(*v),
+        }
+    }
+}
+
+impl<'de> Deserialize<'de> for SearchDirection {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> std::result::Result<Self, D::Error> {
+        #[derive(Deserialize)]
+        #[serde(untagged)]
+        enum Raw {
+            Num(f64),
+            Int(i64),
+            Str(String),
+        }
+        match Raw::deserialize(d)? {
+            Raw::Num(v) => Ok(SearchDirection::Value(v)),
+            Raw::Int(v) => Ok(SearchDirection::Value(v as f64)),
+            Raw::Str(s) if s == "auto" => Ok(SearchDirection::Auto),
+            Raw::Str(s) => s.parse::<f64>().map(SearchDirection::Value).map_err(|_| {
+                serde::de::Error::custom(format!(
+                    "solver.search_direction: expected \"auto\" or a number, got \"{s}\""
+                ))
+            }),
+        }
+    }
+}
+
+impl std::str::FromStr for SearchDirection {
+    type Err = String;
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        if s == "auto" {
+            return Ok(SearchDirection::Auto);
+        }
+        s.parse::<f64>()
+            .map(SearchDirection::Value)
+            .map_err(|_| format!("search direction must be \"auto\" or a number, got '{s}'"))
+    }
+}
+
+/// `[solver]` settings. Command-line flags override them.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SolverSettings {
+    #[serde(default)]
+    pub method: Method,
+    #[serde(default = "default_subdomains")]
+    pub subdomains: usize,
+    #[serde(default = "default_tolerance")]
+    pub tolerance: f64,
+    #[serde(default = "default_max_iterations")]
+    pub max_iterations: usize,
+    #[serde(default)]
+    pub search_direction: SearchDirection,
+}
+
+fn default_subdomains() -> usize {
+    1
+}
+fn default_tolerance() -> f64 {
+    1e-8
+}
+fn default_max_iterations() -> usize {
+    20000
+}
+
+impl Default for SolverSettings {
+    fn default() -> Self {
+        SolverSettings {
+            method: Method::Direct,
+            subdomains: default_subdomains(),
+            tolerance: default_tolerance(),
+            max_iterations: default_max_iterations(),
+            search_direction: SearchDirection::Auto,
+        }
+    }
+}
+
+/// `[nodes]`: columnar coordinates.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+pub struct Nodes {
+    pub x: Vec<f64>,
+    pub y: Vec<f64>,
+    pub z: Vec<f64>,
+}
+
+/// Element kind.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Hash)]
+#[serde(rename_all = "lowercase")]
+pub enum ElementKind {
+    /// Bilateral: carries tension and compression.
+    Bar,
+    /// Goes slack instead of pushing when `unilateral_cables` is on.
+    Cable,
+}
+
+/// `[elements]`: columnar element data.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+pub struct Elements {
+    pub a: Vec<usize>,
+    pub b: Vec<usize>,
+    pub kind: Vec<ElementKind>,
+    pub ea: Vec<f64>,
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub t0: Vec<f64>,
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub mass_per_length: Vec<f64>,
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub subdomain: Vec<usize>,
+}
+
+/// `[supports]`: blocked displacement components per node.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+pub struct Supports {
+    pub node: Vec<usize>,
+    pub dofs: Vec<String>,
+}
+
+/// `[loads]`: nodal forces.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+pub struct Loads {
+    pub node: Vec<usize>,
+    #[serde(default)]
+    pub fx: Vec<f64>,
+    #[serde(default)]
+    pub fy: Vec<f64>,
+    #[serde(default)]
+    pub fz: Vec<f64>,
+}
+
+/// `[[load_cases]]`: an extra load case (nsdd addition).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+pub struct LoadCase {
+    #[serde(default)]
+    pub name: String,
+    pub node: Vec<usize>,
+    #[serde(default)]
+    pub fx: Vec<f64>,
+    #[serde(default)]
+    pub fy: Vec<f64>,
+    #[serde(default)]
+    pub fz: Vec<f64>,
+}
+
+/// `[load_path]`: apply `loads` in `steps` equal load-factor increments up to
+/// `final_factor` (nsdd addition). Each step reuses every factorization and
+/// starts from the previous step's state.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LoadPath {
+    pub steps: usize,
+    #[serde(default = "one")]
+    pub final_factor: f64,
+}
+
+fn one() -> f64 {
+    1.0
+}
+
+use crate::error::{Error, Result};
+
+fn check_finite(field: &str, v: &[f64]) -> Result<()> {
+    match v.iter().position(|x| !x.is_finite()) {
+        Some(i) => Err(Error::input(field, Some(i), format!("not a finite number ({})", v[i]))),
+        None => Ok(()),
+    }
+}
+
+fn check_len(field: &str, len: usize, expected: usize, against: &str) -> Result<()> {
+    if len != expected {
+        return Err(Error::input(
+            field,
+            None,
+            format!("has {len} entries but {against} has {expected}"),
+        ));
+    }
+    Ok(())
+}
+
+fn check_nodes(field: &str, v: &[usize], n_nodes: usize) -> Result<()> {
+    match v.iter().position(|&i| i >= n_nodes) {
+        Some(i) => Err(Error::input(
+            field,
+            Some(i),
+            format!("node index {} out of range (the scene has {n_nodes} nodes)", v[i]),
+        )),
+        None => Ok(()),
+    }
+}
+
+fn check_force_arrays(prefix: &str, node: &[usize], fx: &[f64], fy: &[f64], fz: &[f64], n_nodes: usize) -> Result<()> {
+    for (name, arr) in [("fx", fx), ("fy", fy), ("fz", fz)] {
+        if !arr.is_empty() {
+            check_len(&format!("{prefix}.{name}"), arr.len(), node.len(), &format!("{prefix}.node"))?;
+        }
+        check_finite(&format!("{prefix}.{name}"), arr)?;
+    }
+    check_nodes(&format!("{prefix}.node"), node, n_nodes)
+}
+
+impl Scene {
+    /// Checks every field; the error names the first bad field and index.
+    /// Structural problems (mechanisms) are found later, by the model and
+    /// the factorization.
+    pub fn validate(&self) -> Result<()> {
+        let n = self.nodes.x.len();
+        check_len("nodes.y", self.nodes.y.len(), n, "nodes.x")?;
+        check_len("nodes.z", self.nodes.z.len(), n, "nodes.x")?;
+        if n == 0 {
+            return Err(Error::input("nodes.x", None, "the scene has no nodes"));
+        }
+        check_finite("nodes.x", &self.nodes.x)?;
+        check_finite("nodes.y", &self.nodes.y)?;
+        check_finite("nodes.z", &self.nodes.z)?;
+
+        let el = &self.elements;
+        let m = el.a.len();
+        if m == 0 {
+            return Err(Error::input("elements.a", None, "the scene has no elements"));
+        }
+        check_len("elements.b", el.b.len(), m, "elements.a")?;
+        check_len("elements.kind", el.kind.len(), m, "elements.a")?;
+        check_len("elements.ea", el.ea.len(), m, "elements.a")?;
+        if !el.t0.is_empty() {
+            check_len("elements.t0", el.t0.len(), m, "elements.a")?;
+        }
+        if !el.mass_per_length.is_empty() {
+            check_len("elements.mass_per_length", el.mass_per_length.len(), m, "elements.a")?;
+        }
+        if !el.subdomain.is_empty() {
+            check_len("elements.subdomain", el.subdomain.len(), m, "elements.a")?;
+        }
+        check_nodes("elements.a", &el.a, n)?;
+        check_nodes("elements.b", &el.b, n)?;
+        check_finite("elements.ea", &el.ea)?;
+        check_finite("elements.t0", &el.t0)?;
+        check_finite("elements.mass_per_length", &el.mass_per_length)?;
+        if let Some(i) = el.ea.iter().position(|&v| v <= 0.0) {
+            return Err(Error::input("elements.ea", Some(i), format!("must be positive, got {}", el.ea[i])));
+        }
+        if let Some(i) = el.mass_per_length.iter().position(|&v| v < 0.0) {
+            return Err(Error::input(
+                "elements.mass_per_length",
+                Some(i),
+                format!("must not be negative, got {}", el.mass_per_length[i]),
+            ));
+        }
+        for e in 0..m {
+            let (a, b) = (el.a[e], el.b[e]);
+            let d2 = (self.nodes.x[b] - self.nodes.x[a]).powi(2)
+                + (self.nodes.y[b] - self.nodes.y[a]).powi(2)
+                + (self.nodes.z[b] - self.nodes.z[a]).powi(2);
+            if a == b || d2.sqrt() == 0.0 || !(d2 > 0.0) {
+                return Err(Error::input(
+                    "elements",
+                    Some(e),
+                    format!("zero-length element (nodes {a} and {b} coincide)"),
+                ));
+            }
+        }
+
+        check_len("supports.dofs", self.supports.dofs.len(), self.supports.node.len(), "supports.node")?;
+        check_nodes("supports.node", &self.supports.node, n)?;
+        for (i, d) in self.supports.dofs.iter().enumerate() {
+            if d.is_empty() || d.chars().any(|c| !matches!(c, 'x' | 'y' | 'z')) {
+                return Err(Error::input(
+                    "supports.dofs",
+                    Some(i),
+                    format!("'{d}' is not a set of components (any of x, y, z)"),
+                ));
+            }
+        }
+        check_force_arrays("loads", &self.loads.node, &self.loads.fx, &self.loads.fy, &self.loads.fz, n)?;
+        for (c, lc) in self.load_cases.iter().enumerate() {
+            check_force_arrays(&format!("load_cases[{c}]"), &lc.node, &lc.fx, &lc.fy, &lc.fz, n)?;
+        }
+        if let Some(lp) = &self.load_path {
+            if lp.steps == 0 {
+                return Err(Error::input("load_path.steps", None, "must be at least 1"));
+            }
+            if !lp.final_factor.is_finite() {
+                return Err(Error::input("load_path.final_factor", None, "not a finite number"));
+            }
+        }
+
+        if self.effects.self_weight {
+            if el.mass_per_length.is_empty() {
+                return Err(Error::input(
+                    "elements.mass_per_length",
+                    None,
+                    "effect self_weight needs elements.mass_per_length",
+                ));
+            }
+            if let Some(g) = self.scene.gravity {
+                if g.iter().any(|v| !v.is_finite()) {
+                    return Err(Error::input("scene.gravity", None, "not a finite vector"));
+                }
+            }
+        }
+        let s = &self.solver;
+        if !(s.tolerance > 0.0 && s.tolerance.is_finite()) {
+            return Err(Error::input("solver.tolerance", None, format!("must be positive, got {}", s.tolerance)));
+        }
+        if s.subdomains == 0 {
+            return Err(Error::input("solver.subdomains", None, "must be at least 1"));
+        }
+        if s.max_iterations == 0 {
+            return Err(Error::input("solver.max_iterations", None, "must be at least 1"));
+        }
+        if let SearchDirection::Value(d) = s.search_direction {
+            if !(d > 0.0 && d.is_finite()) {
+                return Err(Error::input("solver.search_direction", None, format!("must be positive, got {d}")));
+            }
+        }
+        Ok(())
+    }
+
+    /// Reads a scene from TOML text.
+    pub fn from_toml_str(s: &str) -> Result<Scene> {
+        toml::from_str(s).map_err(|e| Error::Parse(e.to_string()))
+    }
+
+    /// Reads a scene from JSON text.
+    pub fn from_json_str(s: &str) -> Result<Scene> {
+        serde_json::from_str(s).map_err(|e| Error::Parse(e.to_string()))
+    }
+
+    /// Reads a scene file; `.json` is JSON, anything else TOML.
+    pub fn load(path: &std::path::Path) -> Result<Scene> {
+        let text = std::fs::read_to_string(path).map_err(|e| Error::Io(format!("{}: {e}", path.display())))?;
+        if path.extension().and_then(|e| e.to_str()) == Some("json") {
+            Scene::from_json_str(&text)
+        } else {
+            Scene::from_toml_str(&text)
+        }
+    }
+
+    /// Writes the scene as TOML text.
+    pub fn to_toml_string(&self) -> Result<String> {
+        toml::to_string(self).map_err(|e| Error::Parse(e.to_string()))
+    }
+
+    /// Writes the scene as pretty JSON text.
+    pub fn to_json_string(&self) -> Result<String> {
+        serde_json::to_string_pretty(self).map_err(|e| Error::Parse(e.to_string()))
+    }
+}

@@ -1,0 +1,71 @@
+//! Cross-check against the independent reference solutions in
+//! `../shared/reference/` (dense active set, checked with Siconos' Lemke).
+
+use nsdd::direct::DirectSolver;
+use nsdd::model::Model;
+use nsdd::scene::Scene;
+use std::path::PathBuf;
+
+fn shared() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/reference")
+}
+
+struct Ref {
+    displacements: Vec<[f64; 3]>,
+    tensions: Vec<f64>,
+    slack: Vec<bool>,
+}
+
+fn load_ref(name: &str) -> (Scene, Ref) {
+    let scene = Scene::load(&shared().join(format!("{name}.toml"))).unwrap();
+    let text = std::fs::read_to_string(shared().join(format!("{name}.ref.json"))).unwrap();
+    let v: serde_json::Value = serde_json::from_str(&text).unwrap();
+    let displacements = v["displacements"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|d| {
+            let a = d.as_array().unwrap();
+            [a[0].as_f64().unwrap(), a[1].as_f64().unwrap(), a[2].as_f64().unwrap()]
+        })
+        .collect();
+    let tensions = v["tensions"].as_array().unwrap().iter().map(|t| t.as_f64().unwrap()).collect();
+    let slack = v["slack"].as_array().unwrap().iter().map(|t| t.as_bool().unwrap()).collect();
+    (scene, Ref { displacements, tensions, slack })
+}
+
+fn rel_err(a: &[f64], b: &[f64]) -> f64 {
+    let num: f64 = a.iter().zip(b).map(|(x, y)| (x - y) * (x - y)).sum::<f64>().sqrt();
+    let den: f64 = b.iter().map(|y| y * y).sum::<f64>().sqrt();
+    num / den.max(f64::MIN_POSITIVE)
+}
+
+fn check_direct(name: &str) {
+    let (scene, r) = load_ref(name);
+    let model = Model::from_scene(&scene).unwrap();
+    let mut solver = DirectSolver::new(&model).unwrap();
+    let b = model.rhs(&model.load_cases[0]);
+    let eq = solver.solve(&model, &b).unwrap();
+    let u = model.node_displacements(&eq.u);
+    let t = model.tensions(&eq.u, &eq.lambda);
+    let flat = |v: &[[f64; 3]]| v.iter().flatten().copied().collect::<Vec<f64>>();
+    let eu = rel_err(&flat(&u), &flat(&r.displacements));
+    let et = rel_err(&t, &r.tensions);
+    let mut slack = vec![false; model.elements.len()];
+    for (c, &e) in model.cables.iter().enumerate() {
+        slack[e] = eq.lambda[c] > 0.0;
+    }
+    assert!(eu < 1e-9, "{name}: displacement error {eu}");
+    assert!(et < 1e-9, "{name}: tension error {et}");
+    assert_eq!(slack, r.slack, "{name}: slack set differs");
+}
+
+#[test]
+fn direct_matches_reference_grid4_slack() {
+    check_direct("grid4-slack");
+}
+
+#[test]
+fn direct_matches_reference_tower_small() {
+    check_direct("tower-small");
+}
