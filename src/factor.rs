@@ -110,7 +110,7 @@ impl SparseCholesky {
             }
         }
         let scale = adiag.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-        let ldiag = self.l_diagonal();
+        let ldiag = l_diagonal(&self.symbolic, &self.l_values);
         for (p, &l) in ldiag.iter().enumerate() {
             let orig = perm_fwd[p];
             // Relative to the row's own diagonal, and absolutely to the
@@ -122,39 +122,6 @@ impl SparseCholesky {
             }
         }
         Ok(())
-    }
-
-    /// Diagonal of `L`, in the permuted order.
-    fn l_diagonal(&self) -> Vec<f64> {
-        let mut d = vec![0.0; self.n];
-        match self.symbolic.raw() {
-            SymbolicCholeskyRaw::Simplicial(s) => {
-                let cp = s.col_ptr();
-                let ri = s.row_idx();
-                for j in 0..self.n {
-                    for p in cp[j]..cp[j + 1] {
-                        if ri[p] == j {
-                            d[j] = self.l_values[p];
-                        }
-                    }
-                }
-            }
-            SymbolicCholeskyRaw::Supernodal(s) => {
-                let begin = s.supernode_begin();
-                let end = s.supernode_end();
-                let cpv = s.col_ptr_for_val();
-                for sn in 0..s.n_supernodes() {
-                    let ncols = end[sn] - begin[sn];
-                    let len = cpv[sn + 1] - cpv[sn];
-                    let nrows = len / ncols.max(1);
-                    let block = &self.l_values[cpv[sn]..cpv[sn + 1]];
-                    for j in 0..ncols {
-                        d[begin[sn] + j] = block[j * nrows + j];
-                    }
-                }
-            }
-        }
-        d
     }
 
     /// Matrix dimension.
@@ -203,5 +170,121 @@ impl SparseCholesky {
     /// Bytes held by the factor and its scratch (for memory reports).
     pub fn bytes(&self) -> usize {
         self.l_values.len() * 8 + self.n * 16
+    }
+}
+
+/// Diagonal of the stored factor (of `L` for LLT, of `D` for LDLT), in the
+/// permuted order.
+fn l_diagonal(symbolic: &SymbolicCholesky<usize>, values: &[f64]) -> Vec<f64> {
+    let n = symbolic.nrows();
+    let mut d = vec![0.0; n];
+    match symbolic.raw() {
+        SymbolicCholeskyRaw::Simplicial(s) => {
+            let cp = s.col_ptr();
+            let ri = s.row_idx();
+            for j in 0..n {
+                for p in cp[j]..cp[j + 1] {
+                    if ri[p] == j {
+                        d[j] = values[p];
+                    }
+                }
+            }
+        }
+        SymbolicCholeskyRaw::Supernodal(s) => {
+            let begin = s.supernode_begin();
+            let end = s.supernode_end();
+            let cpv = s.col_ptr_for_val();
+            for sn in 0..s.n_supernodes() {
+                let ncols = end[sn] - begin[sn];
+                let nrows = (cpv[sn + 1] - cpv[sn]) / ncols.max(1);
+                let block = &values[cpv[sn]..cpv[sn + 1]];
+                for j in 0..ncols {
+                    d[begin[sn] + j] = block[j * nrows + j];
+                }
+            }
+        }
+    }
+    d
+}
+
+/// Pivots of a symmetric matrix that is singular or indefinite, found by
+/// one regularised `LDLᵀ` (faer's dynamic regularization replaces every
+/// pivot with `|d| ≤ eps` by `delta`, so the factorization runs to the end).
+#[derive(Debug, Clone, Default)]
+pub struct PivotScan {
+    /// Rows (caller numbering) whose pivot was negligible: fixing dofs.
+    pub negligible: Vec<usize>,
+    /// Rows whose pivot is clearly negative, with `d / A_jj`.
+    pub negative: Vec<(usize, f64)>,
+}
+
+/// Scans the pivots of the matrix whose lower triangle is `lower`. A pivot is
+/// negligible below `PIVOT_RATIO` times the largest diagonal entry.
+pub fn scan_pivots(lower: &SparseColMat<usize, f64>) -> Result<PivotScan, FactorError> {
+    use faer::linalg::cholesky::ldlt::factor::LdltRegularization;
+    let n = lower.nrows();
+    let a = lower.as_ref();
+    let mut adiag = vec![0.0; n];
+    for j in 0..n {
+        for (i, v) in a.row_idx_of_col(j).zip(a.val_of_col(j)) {
+            if i == j {
+                adiag[j] += *v;
+            }
+        }
+    }
+    let scale = adiag.iter().fold(0.0f64, |m, v| m.max(v.abs())).max(f64::MIN_POSITIVE);
+    // A distinctive value, so regularised pivots can be recognised exactly.
+    let delta = scale * (1.0 + 1.0 / 1024.0);
+    let eps = PIVOT_RATIO * scale;
+    let symbolic = factorize_symbolic_cholesky(
+        lower.symbolic(),
+        Side::Lower,
+        SymmetricOrdering::Amd,
+        CholeskySymbolicParams::default(),
+    )
+    .map_err(|e| FactorError::Internal(format!("symbolic analysis: {e:?}")))?;
+    let mut values = vec![0.0f64; symbolic.len_val()];
+    let req = symbolic.factorize_numeric_ldlt_scratch::<f64>(Par::Seq, Spec::default());
+    let mut buf = MemBuffer::try_new(req).map_err(|_| FactorError::Internal("out of memory".into()))?;
+    symbolic
+        .factorize_numeric_ldlt(
+            &mut values,
+            lower.as_ref(),
+            Side::Lower,
+            LdltRegularization { dynamic_regularization_signs: None, dynamic_regularization_delta: delta, dynamic_regularization_epsilon: eps },
+            Par::Seq,
+            MemStack::new(&mut buf),
+            Spec::default(),
+        )
+        .map_err(|e| FactorError::Internal(format!("LDLT: {e:?}")))?;
+    let fwd: Vec<usize> = match symbolic.perm() {
+        Some(p) => p.arrays().0.to_vec(),
+        None => (0..n).collect(),
+    };
+    let d = l_diagonal(&symbolic, &values);
+    let mut scan = PivotScan::default();
+    for (p, &dp) in d.iter().enumerate() {
+        let orig = fwd[p];
+        if dp.abs() == delta {
+            scan.negligible.push(orig);
+        } else if dp < 0.0 {
+            scan.negative.push((orig, dp / adiag[orig].abs().max(f64::MIN_POSITIVE)));
+        }
+    }
+    scan.negligible.sort_unstable();
+    Ok(scan)
+}
+
+/// `y = A x` for the symmetric matrix whose lower triangle is `lower`.
+pub fn sym_matvec(lower: &SparseColMat<usize, f64>, x: &[f64], y: &mut [f64]) {
+    let a = lower.as_ref();
+    y.iter_mut().for_each(|v| *v = 0.0);
+    for j in 0..a.ncols() {
+        for (i, &v) in a.row_idx_of_col(j).zip(a.val_of_col(j)) {
+            y[i] += v * x[j];
+            if i != j {
+                y[j] += v * x[i];
+            }
+        }
     }
 }

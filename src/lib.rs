@@ -1,8 +1,16 @@
 //! nsdd: multilevel domain decomposition for nonsmooth discrete structures.
 pub mod error;
+pub mod coarse;
+pub mod dd;
+pub mod decomposition;
 pub mod direct;
 pub mod factor;
+pub mod kernels;
 pub mod model;
+pub mod partition;
+pub mod result;
 pub mod scene;
+pub mod solve;
+pub mod subdomain;
 
 pub use error::{Error, Result};

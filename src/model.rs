@@ -57,6 +57,8 @@ pub struct Model {
     /// Free-dof index of each node component, or [`FIXED`].
     pub node_dofs: Vec<[usize; 3]>,
     pub n_free: usize,
+    /// `3 · node + component` of each free dof.
+    pub dof_node: Vec<usize>,
     pub elements: Vec<Element>,
     /// The effects that are simulated (declared and applicable).
     pub effects: Effects,
@@ -105,6 +107,7 @@ impl Model {
             used[b] = true;
         }
         let mut node_dofs = vec![[FIXED; 3]; nn];
+        let mut dof_node = Vec::with_capacity(3 * nn);
         let mut n_free = 0;
         for i in 0..nn {
             for d in 0..3 {
@@ -115,6 +118,7 @@ impl Model {
                         )));
                     }
                     node_dofs[i][d] = n_free;
+                    dof_node.push(3 * i + d);
                     n_free += 1;
                 }
             }
@@ -163,6 +167,7 @@ impl Model {
             coords,
             node_dofs,
             n_free,
+            dof_node,
             elements,
             effects,
             notes,
@@ -320,16 +325,11 @@ impl Model {
             .collect()
     }
 
-    /// Node owning free dof `dof` and its component (for error messages).
+    /// Node owning free dof `dof` and its component.
+    #[inline]
     pub fn dof_owner(&self, dof: usize) -> (usize, usize) {
-        for (n, d) in self.node_dofs.iter().enumerate() {
-            for c in 0..3 {
-                if d[c] == dof {
-                    return (n, c);
-                }
-            }
-        }
-        (usize::MAX, 0)
+        let k = self.dof_node[dof];
+        (k / 3, k % 3)
     }
 
     /// A displacement scale for relative measures: the largest element length.

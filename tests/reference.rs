@@ -69,3 +69,31 @@ fn direct_matches_reference_grid4_slack() {
 fn direct_matches_reference_tower_small() {
     check_direct("tower-small");
 }
+
+fn check_dd(name: &str, method: nsdd::scene::Method, subdomains: usize, tol: f64) -> usize {
+    use nsdd::solve::{solve, SolveOptions};
+    let (scene, r) = load_ref(name);
+    let mut opts = SolveOptions::from_scene(&scene);
+    opts.method = method;
+    opts.subdomains = subdomains;
+    opts.tolerance = tol;
+    opts.max_iterations = 200_000;
+    let res = solve(&scene, &opts).unwrap_or_else(|e| panic!("{name} {subdomains}: {e}"));
+    assert!(res.converged, "{name} with {subdomains} subdomains did not converge in {}", res.iterations);
+    let flat = |v: &[[f64; 3]]| v.iter().flatten().copied().collect::<Vec<f64>>();
+    let eu = rel_err(&flat(&res.displacements), &flat(&r.displacements));
+    let et = rel_err(&res.tensions, &r.tensions);
+    eprintln!("{name} {method:?} {subdomains}: {} iterations, eu {eu:.2e} et {et:.2e} d {:?}", res.iterations, res.search_direction);
+    assert!(eu < 10.0 * tol, "{name} {subdomains}: displacement error {eu}");
+    assert!(et < 10.0 * tol, "{name} {subdomains}: tension error {et}");
+    assert_eq!(res.slack, r.slack, "{name} {subdomains}: slack set differs");
+    res.iterations
+}
+
+#[test]
+fn multilevel_matches_reference() {
+    for n in [1, 2, 4, 8] {
+        check_dd("grid4-slack", nsdd::scene::Method::Multilevel, n, 1e-8);
+        check_dd("tower-small", nsdd::scene::Method::Multilevel, n, 1e-8);
+    }
+}

@@ -1,0 +1,701 @@
+//! The seed's multilevel domain decomposition iteration (DESIGN.md §5, the
+//! paper's eqs. 20–23), linear and nonsmooth.
+//!
+//! One iteration:
+//! 1. local stage: `F ← F + (X^D)^{-1} J V` on every interface, and per
+//!    cable `λ ← max(0, −(e + e0))`;
+//! 2. global step: `y_E = K_E⁺ r_E` with `r_E = b_E − C_Eᵀ B_E F − H_c k_c λ`
+//!    (the one sparse solve per subdomain);
+//! 3. coarse step: solve `[L −G; −Gᵀ 0]` for `(f, α)` with the right-hand side
+//!    `Pᵀ J y` (reusing the solve of step 2) and `Rᵀ r`, then
+//!    `V_E = y_E − Z_E f_E + R_E α_E`.
+//!
+//! Everything per subdomain runs in parallel with rayon; reductions are
+//! summed serially in subdomain order, so results do not depend on the
+//! number of threads. Scratch is allocated at set-up: the iteration loop
+//! does not allocate.
+
+use crate::coarse::{CoarseProblem, MacroBasis};
+use crate::decomposition::Decomposition;
+use crate::error::{Error, Result};
+use crate::kernels;
+use crate::model::{Model, FIXED};
+use crate::result::HistoryEntry;
+use crate::scene::SearchDirection;
+use crate::subdomain::SubdomainOperator;
+use faer::Mat;
+use rayon::prelude::*;
+use std::time::Instant;
+
+/// Settings of the iterative methods.
+#[derive(Debug, Clone)]
+pub struct DdOptions {
+    /// With the macro space and coarse problem (multilevel) or without.
+    pub coarse: bool,
+    pub tolerance: f64,
+    pub max_iterations: usize,
+    pub search_direction: SearchDirection,
+}
+
+/// Fraction of the stability limit `2 / λ_max` used by the automatic `d`.
+pub const AUTO_D_FACTOR: f64 = 0.6;
+
+/// Power iterations used to estimate `λ_max` for the automatic `d`.
+const POWER_ITERATIONS: usize = 30;
+
+/// Indicator growth over the best value seen that counts as divergence.
+const DIVERGENCE_GROWTH: f64 = 1e6;
+
+#[derive(Debug, Clone, Copy)]
+struct LocalCable {
+    /// Index in `Model::cables`.
+    cable: usize,
+    dofs: [u32; 6],
+    dir: [f64; 3],
+    k: f64,
+    e0: f64,
+}
+
+const NO_DOF: u32 = u32::MAX;
+
+struct SubState {
+    op: SubdomainOperator,
+    /// `(interface, is_lo)` for every interface of this subdomain.
+    ifaces: Vec<(usize, bool)>,
+    inv_mult: Vec<f64>,
+    /// `−Σ H k e0` of this subdomain's elements (prestrain load).
+    prestrain: Vec<f64>,
+    b: Vec<f64>,
+    r: Vec<f64>,
+    y: Vec<f64>,
+    v: Vec<f64>,
+    g: Vec<f64>,
+    /// `Z_E = K_E⁺ W_E` (`n × m_E`) and the global macro index of each column.
+    z: Mat<f64>,
+    macro_cols: Vec<usize>,
+    fm: Vec<f64>,
+    alpha_off: usize,
+    alpha: Vec<f64>,
+    rt_r: Vec<f64>,
+    cables: Vec<LocalCable>,
+    lambda: Vec<f64>,
+    elong: Vec<f64>,
+    e0: Vec<f64>,
+    // per-iteration reductions
+    v_norm2: f64,
+    dlambda2: f64,
+}
+
+struct IfaceState {
+    lo: usize,
+    hi: usize,
+    lo_idx: Vec<u32>,
+    hi_idx: Vec<u32>,
+    force: Vec<f64>,
+    jump: Vec<f64>,
+    /// `P_Γ` (`entries × m_Γ`), empty without coarse space.
+    p: Mat<f64>,
+    macro_off: usize,
+    pt: Vec<f64>,
+    jump_norm2: f64,
+    /// Lumped interface stiffness `diag(K_lo) + diag(K_hi)` per entry: turns
+    /// a jump into the force it leaves unbalanced.
+    stiffness: Vec<f64>,
+    force_norm2: f64,
+}
+
+/// Result of one DD solve.
+#[derive(Debug, Clone)]
+pub struct DdOutcome {
+    pub u: Vec<f64>,
+    pub lambda: Vec<f64>,
+    pub converged: bool,
+    pub iterations: usize,
+    pub history: Vec<HistoryEntry>,
+}
+
+/// Sizes of the set-up, for reports.
+#[derive(Debug, Clone, Default, serde::Serialize)]
+pub struct DdStats {
+    pub subdomains: usize,
+    pub kernel_dims: Vec<usize>,
+    pub macro_unknowns: usize,
+    pub kernel_unknowns: usize,
+    pub interface_entries: usize,
+    pub nnz_l: usize,
+    pub search_direction: f64,
+    pub setup_s: f64,
+}
+
+/// The set-up DD solver: factorizations, macro space and coarse problem,
+/// reusable for any number of load cases.
+pub struct DdSolver {
+    subs: Vec<SubState>,
+    ifaces: Vec<IfaceState>,
+    coarse: Option<CoarseProblem>,
+    d: f64,
+    opts: DdOptions,
+    n_free: usize,
+    n_cables: usize,
+    dof_maps: Vec<Vec<usize>>,
+    stats: DdStats,
+}
+
+impl DdSolver {
+    /// Factors every subdomain, builds the macro basis and the coarse
+    /// problem (multilevel), and picks `d`.
+    pub fn new(model: &Model, dec: &Decomposition, opts: DdOptions) -> Result<DdSolver> {
+        let t0 = Instant::now();
+        let ns = dec.len();
+        let ops: Vec<Result<SubdomainOperator>> = dec
+            .subdomains
+            .par_iter()
+            .enumerate()
+            .map(|(i, sd)| SubdomainOperator::new(i, model, sd, 64))
+            .collect();
+        let mut operators = Vec::with_capacity(ns);
+        for op in ops {
+            operators.push(op?);
+        }
+        let singular: Vec<usize> = operators.iter().filter(|o| o.kernel_dim() > 0).map(|o| o.id).collect();
+        if !singular.is_empty() && (!opts.coarse || ns == 1) {
+            let what = if ns == 1 {
+                "the structure is not supported well enough: its stiffness is singular".to_string()
+            } else {
+                format!(
+                    "monolevel needs every subdomain matrix to be regular, but subdomain{} {} {} singular (floating or with a mechanism at the cut); use multilevel",
+                    if singular.len() > 1 { "s" } else { "" },
+                    singular.iter().map(|s| s.to_string()).collect::<Vec<_>>().join(", "),
+                    if singular.len() > 1 { "are" } else { "is" }
+                )
+            };
+            return Err(if ns == 1 { Error::Mechanism(what) } else { Error::MethodNotApplicable(what) });
+        }
+
+        let use_coarse = opts.coarse && !dec.interfaces.is_empty();
+        // Interfaces and their macro bases.
+        let mut ifaces: Vec<IfaceState> = dec
+            .interfaces
+            .iter()
+            .map(|it| IfaceState {
+                lo: it.lo,
+                hi: it.hi,
+                lo_idx: dec.entry_lo_local[it.start..it.end].to_vec(),
+                hi_idx: dec.entry_hi_local[it.start..it.end].to_vec(),
+                force: vec![0.0; it.len()],
+                jump: vec![0.0; it.len()],
+                p: Mat::zeros(0, 0),
+                macro_off: 0,
+                pt: Vec::new(),
+                jump_norm2: 0.0,
+                stiffness: Vec::new(),
+                force_norm2: 0.0,
+            })
+            .collect();
+        if use_coarse {
+            let blocks: Vec<Mat<f64>> = dec
+                .interfaces
+                .par_iter()
+                .zip(ifaces.par_iter())
+                .map(|(it, st)| {
+                    let dofs = &dec.entry_dof[it.start..it.end];
+                    let (points, comp): (Vec<[f64; 3]>, Vec<usize>) = dofs
+                        .iter()
+                        .map(|&d| {
+                            let (node, c) = model.dof_owner(d);
+                            (model.coords[node], c)
+                        })
+                        .unzip();
+                    let rlo = operators[it.lo].kernel();
+                    let rhi = operators[it.hi].kernel();
+                    let tlo = Mat::from_fn(it.len(), rlo.ncols(), |j, q| rlo[(st.lo_idx[j] as usize, q)]);
+                    let thi = Mat::from_fn(it.len(), rhi.ncols(), |j, q| rhi[(st.hi_idx[j] as usize, q)]);
+                    MacroBasis::interface_block(&points, &comp, &tlo, &thi)
+                })
+                .collect();
+            let basis = MacroBasis::from_blocks(blocks);
+            for (i, st) in ifaces.iter_mut().enumerate() {
+                st.macro_off = basis.offset[i];
+                st.pt = vec![0.0; basis.blocks[i].ncols()];
+            }
+            for (st, p) in ifaces.iter_mut().zip(basis.blocks) {
+                st.p = p;
+            }
+        }
+
+        // Per-subdomain state.
+        let mut alpha_off = 0;
+        let mut subs: Vec<SubState> = Vec::with_capacity(ns);
+        for (s, op) in operators.into_iter().enumerate() {
+            let sd = &dec.subdomains[s];
+            let n = op.n();
+            let ifs: Vec<(usize, bool)> =
+                sd.interfaces.iter().map(|&i| (i, dec.interfaces[i].lo == s)).collect();
+            let mut prestrain = vec![0.0; n];
+            let mut cables = Vec::new();
+            let local = |d: usize| if d == FIXED { NO_DOF } else { sd.local(d).map_or(NO_DOF, |l| l as u32) };
+            for &e in &sd.elements {
+                let el = &model.elements[e];
+                let dofs = model.element_dofs(e).map(local);
+                if el.e0 != 0.0 {
+                    add_h_local(&dofs, el.dir, -el.k * el.e0, &mut prestrain);
+                }
+                if el.unilateral {
+                    let cable = model.cables.binary_search(&e).expect("unilateral element is a cable");
+                    cables.push(LocalCable { cable, dofs, dir: el.dir, k: el.k, e0: el.e0 });
+                }
+            }
+            let r = op.kernel_dim();
+            let nc = cables.len();
+            subs.push(SubState {
+                ifaces: ifs,
+                inv_mult: sd.multiplicity.iter().map(|&m| 1.0 / m as f64).collect(),
+                prestrain,
+                b: vec![0.0; n],
+                r: vec![0.0; n],
+                y: vec![0.0; n],
+                v: vec![0.0; n],
+                g: vec![0.0; n],
+                z: Mat::zeros(0, 0),
+                macro_cols: Vec::new(),
+                fm: Vec::new(),
+                alpha_off,
+                alpha: vec![0.0; r],
+                rt_r: vec![0.0; r],
+                e0: cables.iter().map(|c| c.e0).collect(),
+                cables,
+                lambda: vec![0.0; nc],
+                elong: vec![0.0; nc],
+                v_norm2: 0.0,
+                dlambda2: 0.0,
+                op,
+            });
+            alpha_off += r;
+        }
+
+        let diags: Vec<Vec<f64>> = subs.iter().map(|s| s.op.diagonal()).collect();
+        for it in ifaces.iter_mut() {
+            it.stiffness = it
+                .lo_idx
+                .iter()
+                .zip(&it.hi_idx)
+                .map(|(&a, &b)| diags[it.lo][a as usize] + diags[it.hi][b as usize])
+                .collect();
+        }
+        drop(diags);
+
+        // Coarse operator from one batched multi-RHS solve per subdomain.
+        let mut coarse = None;
+        let mut n_macro = 0;
+        if use_coarse {
+            n_macro = ifaces.iter().map(|i| i.p.ncols()).sum();
+            let blocks: Vec<(Vec<usize>, Mat<f64>, Mat<f64>)> = subs
+                .par_iter_mut()
+                .map(|st| {
+                    let n = st.op.n();
+                    let mut cols = Vec::new();
+                    for &(i, _) in &st.ifaces {
+                        let it = &ifaces[i];
+                        cols.extend((0..it.p.ncols()).map(|q| it.macro_off + q));
+                    }
+                    let m = cols.len();
+                    let mut w = vec![0.0; n * m];
+                    let mut c = 0;
+                    for &(i, is_lo) in &st.ifaces {
+                        let it = &ifaces[i];
+                        let idx = if is_lo { &it.lo_idx } else { &it.hi_idx };
+                        let sign = if is_lo { 1.0 } else { -1.0 };
+                        for q in 0..it.p.ncols() {
+                            for (j, &l) in idx.iter().enumerate() {
+                                w[c * n + l as usize] += sign * it.p[(j, q)];
+                            }
+                            c += 1;
+                        }
+                    }
+                    let mut z = w.clone();
+                    st.op.solve_columns(&mut z, m);
+                    let wm = Mat::from_fn(n, m, |i, j| w[j * n + i]);
+                    let zm = Mat::from_fn(n, m, |i, j| z[j * n + i]);
+                    let l_e = wm.transpose() * &zm;
+                    let g_e = wm.transpose() * st.op.kernel();
+                    st.z = zm;
+                    st.fm = vec![0.0; m];
+                    st.macro_cols = cols.clone();
+                    (cols, l_e, g_e)
+                })
+                .collect();
+            let n_alpha = alpha_off;
+            let mut l = Mat::<f64>::zeros(n_macro, n_macro);
+            let mut g = Mat::<f64>::zeros(n_macro, n_alpha);
+            let mut owner = vec![0usize; n_alpha];
+            for (s, (cols, l_e, g_e)) in blocks.iter().enumerate() {
+                for (b, &cb) in cols.iter().enumerate() {
+                    for (a, &ca) in cols.iter().enumerate() {
+                        l[(ca, cb)] += l_e[(a, b)];
+                    }
+                }
+                let off = subs[s].alpha_off;
+                for q in 0..g_e.ncols() {
+                    owner[off + q] = s;
+                    for (a, &ca) in cols.iter().enumerate() {
+                        g[(ca, off + q)] += g_e[(a, q)];
+                    }
+                }
+            }
+            coarse = Some(CoarseProblem::new(l, g, &owner)?);
+        }
+
+        let stats = DdStats {
+            subdomains: ns,
+            kernel_dims: subs.iter().map(|s| s.op.kernel_dim()).collect(),
+            macro_unknowns: n_macro,
+            kernel_unknowns: alpha_off,
+            interface_entries: dec.n_entries(),
+            nnz_l: subs.iter().map(|s| s.op.nnz_l()).sum(),
+            search_direction: 0.0,
+            setup_s: 0.0,
+        };
+        let mut solver = DdSolver {
+            subs,
+            ifaces,
+            coarse,
+            d: 0.0,
+            opts,
+            n_free: model.n_free,
+            n_cables: model.cables.len(),
+            dof_maps: dec.subdomains.iter().map(|s| s.dofs.clone()).collect(),
+            stats,
+        };
+        solver.d = match solver.opts.search_direction {
+            SearchDirection::Value(d) => d,
+            SearchDirection::Auto => solver.auto_search_direction()?,
+        };
+        solver.stats.search_direction = solver.d;
+        solver.stats.setup_s = t0.elapsed().as_secs_f64();
+        Ok(solver)
+    }
+
+    /// Set-up sizes and the chosen `d`.
+    pub fn stats(&self) -> &DdStats {
+        &self.stats
+    }
+
+    /// The search direction `d` in use.
+    pub fn search_direction(&self) -> f64 {
+        self.d
+    }
+
+    /// Whether this solver runs a coarse step.
+    pub fn has_coarse(&self) -> bool {
+        self.coarse.is_some()
+    }
+
+    /// Whether any interface exists (more than one subdomain).
+    pub fn has_interfaces(&self) -> bool {
+        !self.ifaces.is_empty()
+    }
+
+    /// Whether any subdomain needed a generalised inverse.
+    pub fn has_kernels(&self) -> bool {
+        self.stats.kernel_unknowns > 0
+    }
+
+    /// `d = AUTO_D_FACTOR · 2 / λ_max(M X_P)`, where `M = Σ B_Eᵀ B_E` and
+    /// `X_P` is the interface operator with the coarse step inside: the
+    /// stationary iteration converges for `d < 2 / λ_max`. `λ_max` comes from
+    /// a power iteration on the same kernels as the solve, so it follows the
+    /// stiffness scale (EA/L) and the geometry of every interface.
+    fn auto_search_direction(&mut self) -> Result<f64> {
+        if self.ifaces.is_empty() {
+            return Ok(1.0);
+        }
+        for s in self.subs.iter_mut() {
+            s.b.iter_mut().for_each(|v| *v = 0.0);
+            s.lambda.iter_mut().for_each(|v| *v = 0.0);
+        }
+        // Deterministic, non-degenerate start vector.
+        for it in self.ifaces.iter_mut() {
+            for (j, f) in it.force.iter_mut().enumerate() {
+                *f = 1.0 + ((j * 7 + it.lo * 3 + it.hi) % 11) as f64 / 11.0;
+            }
+        }
+        let mut lambda_max = 0.0;
+        for _ in 0..POWER_ITERATIONS {
+            let norm = self.ifaces.iter().map(|i| kernels::norm2(&i.force)).sum::<f64>().sqrt();
+            if !(norm > 0.0) {
+                break;
+            }
+            for it in self.ifaces.iter_mut() {
+                it.force.iter_mut().for_each(|f| *f /= norm);
+            }
+            self.global_step(false);
+            self.compute_jumps();
+            // T x = −M J V(x): the force increment for d = −1, from zero.
+            for it in self.ifaces.iter_mut() {
+                it.force.iter_mut().for_each(|f| *f = 0.0);
+            }
+            self.force_stage(-1.0);
+            lambda_max = self.ifaces.iter().map(|i| kernels::norm2(&i.force)).sum::<f64>().sqrt();
+        }
+        for it in self.ifaces.iter_mut() {
+            it.force.iter_mut().for_each(|f| *f = 0.0);
+        }
+        if !lambda_max.is_finite() {
+            return Err(Error::Numerical("could not estimate the interface operator's spectrum for d".into()));
+        }
+        // When the macro space covers (nearly) all of the interface, the
+        // projected operator vanishes and only round-off is left to iterate
+        // on: cap d by the lumped interface stiffness, the scale of X⁻¹.
+        let cap = 0.5 * self.ifaces.iter().flat_map(|i| i.stiffness.iter()).fold(0.0f64, |m, &k| m.max(k));
+        let d = if lambda_max > 0.0 { AUTO_D_FACTOR * 2.0 / lambda_max } else { cap };
+        Ok(d.min(cap))
+    }
+
+    /// Solves for the external nodal forces `f_ext` (free dofs). With `warm`,
+    /// starts from the interface forces and slacks of the previous solve.
+    pub fn solve(
+        &mut self,
+        f_ext: &[f64],
+        warm: bool,
+        mut progress: Option<&mut dyn FnMut(usize, f64)>,
+    ) -> Result<DdOutcome> {
+        let t0 = Instant::now();
+        let subs_dofs = &self.dof_maps;
+        self.subs.par_iter_mut().zip(subs_dofs.par_iter()).for_each(|(s, dofs)| {
+            for (l, &d) in dofs.iter().enumerate() {
+                s.b[l] = f_ext[d] * s.inv_mult[l] + s.prestrain[l];
+            }
+            if !warm {
+                s.lambda.iter_mut().for_each(|v| *v = 0.0);
+            }
+        });
+        if !warm {
+            for it in self.ifaces.iter_mut() {
+                it.force.iter_mut().for_each(|f| *f = 0.0);
+            }
+        }
+        let has_cables = self.n_cables > 0;
+        // Force scale of the problem: the assembled right-hand side.
+        let mut b_global = vec![0.0; self.n_free];
+        for (s, dofs) in self.subs.iter().zip(&self.dof_maps) {
+            for (l, &d) in dofs.iter().enumerate() {
+                b_global[d] += s.b[l];
+            }
+        }
+        let b_norm = kernels::norm2(&b_global).sqrt();
+        drop(b_global);
+        let mut history = Vec::with_capacity(self.opts.max_iterations.min(100_000));
+        self.global_step(has_cables);
+        self.compute_jumps();
+        let mut best = f64::INFINITY;
+        let mut converged = false;
+        let mut iterations = 0;
+        // One subdomain without cables: the first global step is exact.
+        if self.ifaces.is_empty() && !has_cables {
+            converged = true;
+            history.push(HistoryEntry { iteration: 0, time_s: t0.elapsed().as_secs_f64(), indicator: 0.0, jump: None, cable_change: None });
+        }
+        while !converged && iterations < self.opts.max_iterations {
+            iterations += 1;
+            // Local stage.
+            self.force_stage(self.d);
+            if has_cables {
+                self.subs.par_iter_mut().for_each(|s| {
+                    cable_elongations(s);
+                    s.dlambda2 = kernels::cable_projection(&mut s.lambda, &s.elong, &s.e0);
+                });
+            }
+            // Global step and coarse step.
+            self.global_step(has_cables);
+            self.compute_jumps();
+            let v2: f64 = self.subs.iter().map(|s| s.v_norm2).sum();
+            let vn = v2.sqrt().max(f64::MIN_POSITIVE);
+            let jump = self.ifaces.iter().map(|i| i.jump_norm2).sum::<f64>().sqrt() / vn;
+            let force = self.ifaces.iter().map(|i| i.force_norm2).sum::<f64>().sqrt() / b_norm.max(f64::MIN_POSITIVE);
+            let jump = jump.max(force);
+            let cable = if has_cables { Some(self.subs.iter().map(|s| s.dlambda2).sum::<f64>().sqrt() / vn) } else { None };
+            let indicator = jump.max(cable.unwrap_or(0.0));
+            history.push(HistoryEntry {
+                iteration: iterations,
+                time_s: t0.elapsed().as_secs_f64(),
+                indicator,
+                jump: if self.ifaces.is_empty() { None } else { Some(jump) },
+                cable_change: cable,
+            });
+            if let Some(p) = progress.as_mut() {
+                p(iterations, indicator);
+            }
+            if !indicator.is_finite() || !v2.is_finite() {
+                return Err(Error::Diverged { iteration: iterations, message: "the iterate is no longer finite (NaN or Inf); lower the search direction d".into() });
+            }
+            if indicator > DIVERGENCE_GROWTH * best && iterations > 10 {
+                return Err(Error::Diverged {
+                    iteration: iterations,
+                    message: format!(
+                        "the indicator grew from {best:.3e} to {indicator:.3e}; the search direction d = {:.3e} is too large",
+                        self.d
+                    ),
+                });
+            }
+            best = best.min(indicator);
+            converged = indicator <= self.opts.tolerance;
+        }
+        let (u, lambda) = self.assemble();
+        Ok(DdOutcome { u, lambda, converged, iterations, history })
+    }
+
+    /// `r = b − C Bᵀ F − H k λ`, `y = K⁺ r`, coarse step, `V = y − Z f + R α`.
+    fn global_step(&mut self, with_cables: bool) {
+        let ifaces = &self.ifaces;
+        self.subs.par_iter_mut().for_each(|s| {
+            s.r.copy_from_slice(&s.b);
+            for &(i, is_lo) in &s.ifaces {
+                let it = &ifaces[i];
+                let (idx, coef) = if is_lo { (&it.lo_idx, -1.0) } else { (&it.hi_idx, 1.0) };
+                kernels::scatter_add(&mut s.r, idx, &it.force, coef);
+            }
+            if with_cables {
+                for (c, &lam) in s.cables.iter().zip(&s.lambda) {
+                    if lam != 0.0 {
+                        add_h_local(&c.dofs, c.dir, -c.k * lam, &mut s.r);
+                    }
+                }
+            }
+            s.y.copy_from_slice(&s.r);
+            s.op.solve_in_place(&mut s.y);
+        });
+        if let Some(coarse) = self.coarse.as_mut() {
+            let subs = &self.subs;
+            self.ifaces.par_iter_mut().for_each(|it| {
+                kernels::jump(&mut it.jump, &subs[it.lo].y, &it.lo_idx, &subs[it.hi].y, &it.hi_idx);
+                let m = it.p.ncols();
+                for q in 0..m {
+                    let col = it.p.col(q);
+                    it.pt[q] = col.iter().zip(&it.jump).map(|(a, b)| a * b).sum();
+                }
+            });
+            for it in &self.ifaces {
+                coarse.rhs[it.macro_off..it.macro_off + it.pt.len()].copy_from_slice(&it.pt);
+            }
+            self.subs.par_iter_mut().for_each(|s| {
+                let r = s.op.kernel();
+                for q in 0..r.ncols() {
+                    s.rt_r[q] = r.col(q).iter().zip(&s.r).map(|(a, b)| a * b).sum();
+                }
+            });
+            let nf = coarse.n_macro;
+            for s in &self.subs {
+                coarse.rhs[nf + s.alpha_off..nf + s.alpha_off + s.rt_r.len()].copy_from_slice(&s.rt_r);
+            }
+            coarse.solve();
+            let coarse = &*coarse;
+            self.subs.par_iter_mut().for_each(|s| {
+                let f = coarse.macro_forces();
+                for (k, &c) in s.macro_cols.iter().enumerate() {
+                    s.fm[k] = f[c];
+                }
+                let na = s.alpha.len();
+                s.alpha.copy_from_slice(&coarse.kernel_amplitudes()[s.alpha_off..s.alpha_off + na]);
+                s.v.copy_from_slice(&s.y);
+                for (k, &fk) in s.fm.iter().enumerate() {
+                    if fk != 0.0 {
+                        for (v, z) in s.v.iter_mut().zip(s.z.col(k).iter()) {
+                            *v -= z * fk;
+                        }
+                    }
+                }
+                let r = s.op.kernel();
+                for (q, &a) in s.alpha.iter().enumerate() {
+                    for (v, rq) in s.v.iter_mut().zip(r.col(q).iter()) {
+                        *v += rq * a;
+                    }
+                }
+                s.v_norm2 = kernels::norm2(&s.v);
+            });
+        } else {
+            self.subs.par_iter_mut().for_each(|s| {
+                s.v.copy_from_slice(&s.y);
+                s.v_norm2 = kernels::norm2(&s.v);
+            });
+        }
+    }
+
+    /// `jump = J V` on every interface.
+    fn compute_jumps(&mut self) {
+        let subs = &self.subs;
+        self.ifaces.par_iter_mut().for_each(|it| {
+            kernels::jump(&mut it.jump, &subs[it.lo].v, &it.lo_idx, &subs[it.hi].v, &it.hi_idx);
+            it.jump_norm2 = kernels::norm2(&it.jump);
+            it.force_norm2 = it.jump.iter().zip(&it.stiffness).map(|(j, k)| (j * k) * (j * k)).sum();
+        });
+    }
+
+    /// `F += d Σ_E B_Eᵀ B_E jump` (cross points couple their pair entries).
+    fn force_stage(&mut self, d: f64) {
+        let ifaces = &self.ifaces;
+        self.subs.par_iter_mut().for_each(|s| {
+            for &(i, is_lo) in &s.ifaces {
+                let it = &ifaces[i];
+                let (idx, coef) = if is_lo { (&it.lo_idx, 1.0) } else { (&it.hi_idx, -1.0) };
+                kernels::scatter_add(&mut s.g, idx, &it.jump, coef);
+            }
+        });
+        let subs = &self.subs;
+        self.ifaces.par_iter_mut().for_each(|it| {
+            kernels::force_update(&mut it.force, d, &subs[it.lo].g, &it.lo_idx, &subs[it.hi].g, &it.hi_idx);
+        });
+        let ifaces = &self.ifaces;
+        self.subs.par_iter_mut().for_each(|s| {
+            for &(i, is_lo) in &s.ifaces {
+                let it = &ifaces[i];
+                let idx = if is_lo { &it.lo_idx } else { &it.hi_idx };
+                for &l in idx.iter() {
+                    s.g[l as usize] = 0.0;
+                }
+            }
+        });
+    }
+
+    /// Global displacement (average of the subdomain copies) and slacks.
+    fn assemble(&self) -> (Vec<f64>, Vec<f64>) {
+        let mut u = vec![0.0; self.n_free];
+        let mut lambda = vec![0.0; self.n_cables];
+        for (s, dofs) in self.subs.iter().zip(&self.dof_maps) {
+            for (l, &d) in dofs.iter().enumerate() {
+                u[d] += s.v[l] * s.inv_mult[l];
+            }
+            for (c, &lam) in s.cables.iter().zip(&s.lambda) {
+                lambda[c.cable] = lam;
+            }
+        }
+        (u, lambda)
+    }
+}
+
+fn cable_elongations(s: &mut SubState) {
+    for (c, e) in s.cables.iter().zip(s.elong.iter_mut()) {
+        let mut x = 0.0;
+        for d in 0..3 {
+            if c.dofs[3 + d] != NO_DOF {
+                x += c.dir[d] * s.v[c.dofs[3 + d] as usize];
+            }
+            if c.dofs[d] != NO_DOF {
+                x -= c.dir[d] * s.v[c.dofs[d] as usize];
+            }
+        }
+        *e = x;
+    }
+}
+
+/// `out += H_e · coef` on local dofs.
+#[inline]
+fn add_h_local(dofs: &[u32; 6], dir: [f64; 3], coef: f64, out: &mut [f64]) {
+    for d in 0..3 {
+        if dofs[d] != NO_DOF {
+            out[dofs[d] as usize] -= dir[d] * coef;
+        }
+        if dofs[3 + d] != NO_DOF {
+            out[dofs[3 + d] as usize] += dir[d] * coef;
+        }
+    }
+}

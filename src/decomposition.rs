@@ -1,0 +1,197 @@
+//! Subdomains and pairwise interfaces of an element-oriented partition
+//! (DESIGN.md §2).
+//!
+//! A free dof used by elements of several subdomains is an interface dof.
+//! Each *pair* `(E, E')` sharing dofs is an [`Interface`]; a dof shared by
+//! `m` subdomains (a cross point) appears in `m(m−1)/2` interfaces, with one
+//! force unknown per pair and dof (redundant multipliers). The global
+//! interface vector stores interfaces one after the other; entry `j` belongs
+//! to the pair `(lo, hi)` with `lo < hi`. `B_E` is never formed: it is the
+//! sign (+ for `lo`, − for `hi`) and the local dof of each entry.
+
+use crate::model::{Model, FIXED};
+use crate::partition::Partition;
+
+/// One subdomain's dofs and interface connectivity.
+#[derive(Debug, Clone)]
+pub struct SubdomainDofs {
+    /// Elements of this subdomain.
+    pub elements: Vec<usize>,
+    /// Global free dofs touched by its elements, increasing.
+    pub dofs: Vec<usize>,
+    /// For each local dof, the number of subdomains sharing it (≥ 1).
+    pub multiplicity: Vec<u32>,
+    /// Interfaces this subdomain belongs to (indices into `interfaces`).
+    pub interfaces: Vec<usize>,
+}
+
+impl SubdomainDofs {
+    /// Local index of global free dof `dof` (binary search).
+    pub fn local(&self, dof: usize) -> Option<usize> {
+        self.dofs.binary_search(&dof).ok()
+    }
+}
+
+/// The interface between subdomains `lo < hi`.
+#[derive(Debug, Clone)]
+pub struct Interface {
+    pub lo: usize,
+    pub hi: usize,
+    /// Its entries in the global interface vector: `start..end`.
+    pub start: usize,
+    pub end: usize,
+}
+
+impl Interface {
+    /// Number of entries (pair-dofs).
+    pub fn len(&self) -> usize {
+        self.end - self.start
+    }
+    /// True for an interface without entries (never built).
+    pub fn is_empty(&self) -> bool {
+        self.end == self.start
+    }
+}
+
+/// The decomposition: subdomains, interfaces, and per-entry gather maps.
+#[derive(Debug, Clone)]
+pub struct Decomposition {
+    pub partition: Partition,
+    pub subdomains: Vec<SubdomainDofs>,
+    pub interfaces: Vec<Interface>,
+    /// Global free dof of each interface entry.
+    pub entry_dof: Vec<usize>,
+    /// Local dof of each entry in its `lo` subdomain.
+    pub entry_lo_local: Vec<u32>,
+    /// Local dof of each entry in its `hi` subdomain.
+    pub entry_hi_local: Vec<u32>,
+}
+
+/// Interface quality figures (the `nsdd partition` report).
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct QualityReport {
+    pub subdomains: usize,
+    pub elements_per_subdomain: Vec<usize>,
+    pub dofs_per_subdomain: Vec<usize>,
+    /// Distinct global dofs on any interface.
+    pub interface_dofs: usize,
+    /// Pair-dof entries of the global interface vector (with redundancy).
+    pub interface_entries: usize,
+    pub interfaces: usize,
+    /// Nodes shared by three or more subdomains.
+    pub cross_points: usize,
+    /// Largest number of subdomains sharing one node.
+    pub max_node_multiplicity: usize,
+    pub element_imbalance: f64,
+}
+
+impl Decomposition {
+    /// Builds subdomain dof sets and pairwise interfaces.
+    pub fn new(model: &Model, partition: Partition) -> Decomposition {
+        let n_parts = partition.len();
+        // Subdomains touching each free dof, sorted and unique.
+        let mut touch: Vec<Vec<u32>> = vec![Vec::new(); model.n_free];
+        let mut subdomains = Vec::with_capacity(n_parts);
+        for (s, elems) in partition.elements_of.iter().enumerate() {
+            let mut dofs: Vec<usize> = elems
+                .iter()
+                .flat_map(|&e| model.element_dofs(e))
+                .filter(|&d| d != FIXED)
+                .collect();
+            dofs.sort_unstable();
+            dofs.dedup();
+            for &d in &dofs {
+                touch[d].push(s as u32);
+            }
+            subdomains.push(SubdomainDofs {
+                elements: elems.clone(),
+                dofs,
+                multiplicity: Vec::new(),
+                interfaces: Vec::new(),
+            });
+        }
+        for sd in subdomains.iter_mut() {
+            sd.multiplicity = sd.dofs.iter().map(|&d| touch[d].len() as u32).collect();
+        }
+        // Pair-dof entries, grouped by pair then dof: sorting makes the
+        // layout independent of hashing and thread count.
+        let mut pairs: Vec<(u32, u32, usize)> = Vec::new();
+        for (d, t) in touch.iter().enumerate() {
+            for i in 0..t.len() {
+                for j in i + 1..t.len() {
+                    pairs.push((t[i], t[j], d));
+                }
+            }
+        }
+        pairs.sort_unstable();
+        let mut interfaces = Vec::new();
+        let mut entry_dof = Vec::with_capacity(pairs.len());
+        let mut entry_lo_local = Vec::with_capacity(pairs.len());
+        let mut entry_hi_local = Vec::with_capacity(pairs.len());
+        let mut k = 0;
+        while k < pairs.len() {
+            let (lo, hi) = (pairs[k].0 as usize, pairs[k].1 as usize);
+            let start = k;
+            while k < pairs.len() && pairs[k].0 as usize == lo && pairs[k].1 as usize == hi {
+                let d = pairs[k].2;
+                entry_dof.push(d);
+                entry_lo_local.push(subdomains[lo].local(d).expect("dof of lo") as u32);
+                entry_hi_local.push(subdomains[hi].local(d).expect("dof of hi") as u32);
+                k += 1;
+            }
+            let id = interfaces.len();
+            subdomains[lo].interfaces.push(id);
+            subdomains[hi].interfaces.push(id);
+            interfaces.push(Interface { lo, hi, start, end: k });
+        }
+        Decomposition { partition, subdomains, interfaces, entry_dof, entry_lo_local, entry_hi_local }
+    }
+
+    /// Number of subdomains.
+    pub fn len(&self) -> usize {
+        self.subdomains.len()
+    }
+
+    /// True without subdomains (never for a built decomposition).
+    pub fn is_empty(&self) -> bool {
+        self.subdomains.is_empty()
+    }
+
+    /// Length of the global interface vector.
+    pub fn n_entries(&self) -> usize {
+        self.entry_dof.len()
+    }
+
+    /// Sizes of interfaces, cross points and balance.
+    pub fn quality(&self, model: &Model) -> QualityReport {
+        let elements_per_subdomain: Vec<usize> = self.subdomains.iter().map(|s| s.elements.len()).collect();
+        let mut node_parts: Vec<Vec<usize>> = vec![Vec::new(); model.coords.len()];
+        for (s, sd) in self.subdomains.iter().enumerate() {
+            for &e in &sd.elements {
+                for n in [model.elements[e].a, model.elements[e].b] {
+                    if node_parts[n].last() != Some(&s) {
+                        node_parts[n].push(s);
+                    }
+                }
+            }
+        }
+        let cross_points = node_parts.iter().filter(|p| p.len() >= 3).count();
+        let max_node_multiplicity = node_parts.iter().map(|p| p.len()).max().unwrap_or(0);
+        let mut idofs = self.entry_dof.clone();
+        idofs.sort_unstable();
+        idofs.dedup();
+        let max_e = *elements_per_subdomain.iter().max().unwrap_or(&0) as f64;
+        let mean_e = elements_per_subdomain.iter().sum::<usize>() as f64 / self.len().max(1) as f64;
+        QualityReport {
+            subdomains: self.len(),
+            dofs_per_subdomain: self.subdomains.iter().map(|s| s.dofs.len()).collect(),
+            elements_per_subdomain,
+            interface_dofs: idofs.len(),
+            interface_entries: self.n_entries(),
+            interfaces: self.interfaces.len(),
+            cross_points,
+            max_node_multiplicity,
+            element_imbalance: if mean_e > 0.0 { max_e / mean_e } else { 1.0 },
+        }
+    }
+}

@@ -1,0 +1,78 @@
+//! The result format of SCENE.md (`--out result.json`). Field names are a
+//! public contract: add, never rename.
+
+use serde::{Deserialize, Serialize};
+
+/// One entry of the convergence history.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct HistoryEntry {
+    pub iteration: usize,
+    pub time_s: f64,
+    /// The stopping indicator (max of the individual indicators below).
+    pub indicator: f64,
+    /// Relative interface jump `‖Σ B_Eᵀ C_E V_E‖ / ‖V‖`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub jump: Option<f64>,
+    /// Relative change of the cable slacks `‖Δλ‖ / ‖e‖`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cable_change: Option<f64>,
+}
+
+/// Wall-clock timings in seconds.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct Timings {
+    pub setup: f64,
+    pub solve: f64,
+}
+
+/// State of one load case or load step (nsdd addition).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CaseResult {
+    pub name: String,
+    /// Load factor for a load-path step; 1 for a load case.
+    pub load_factor: f64,
+    pub converged: bool,
+    pub iterations: usize,
+    pub displacements: Vec<[f64; 3]>,
+    pub tensions: Vec<f64>,
+    pub slack: Vec<bool>,
+}
+
+/// The whole result of `nsdd solve`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SolveResult {
+    pub scene: String,
+    pub method: String,
+    pub effects: Vec<String>,
+    pub stages: Vec<String>,
+    pub converged: bool,
+    pub iterations: usize,
+    pub subdomains: usize,
+    pub displacements: Vec<[f64; 3]>,
+    pub tensions: Vec<f64>,
+    pub slack: Vec<bool>,
+    pub history: Vec<HistoryEntry>,
+    pub timings_s: Timings,
+    /// The search direction `d` used by the iterative methods.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub search_direction: Option<f64>,
+    /// Declared effects that were not applied, and other remarks.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub notes: Vec<String>,
+    /// Extra load cases (`[[load_cases]]`), after case 0 which is the top level.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub load_cases: Vec<CaseResult>,
+    /// Load-path steps (`[load_path]`); the top level holds the last step.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub steps: Vec<CaseResult>,
+    /// Subdomain id of each element (empty for the direct method).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub element_subdomain: Vec<usize>,
+}
+
+impl SolveResult {
+    /// Pretty JSON text.
+    pub fn to_json(&self) -> String {
+        serde_json::to_string_pretty(self).expect("result serialization cannot fail")
+    }
+}

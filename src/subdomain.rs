@@ -1,0 +1,273 @@
+//! Subdomain operators (DESIGN.md §3): `K_E` assembled and factored once,
+//! with a generalised inverse and an orthonormal kernel basis `R_E` when the
+//! subdomain floats or has local mechanisms at the cut.
+//!
+//! Singular `K_E`: one regularised `LDLᵀ` finds the fixing dofs `F` (the
+//! pivots that vanish); the matrix is then factored with the rows and
+//! columns of `F` replaced by a unit-scale diagonal, which is block diagonal
+//! `diag(K_rr, δI)`. With `r_F` zeroed, its solve is the generalised inverse
+//! `K⁺ r = [K_rr⁻¹ r_r; 0]`, exact for `r ⊥ R_E`, and the kernel is
+//! `R = [−K_rr⁻¹ K_rf; I]`, orthonormalised. Both are checked a posteriori
+//! (`‖K R‖`), and a negative pivot is an indefinite subdomain: it is
+//! reported, never regularised away.
+
+use crate::decomposition::SubdomainDofs;
+use crate::error::{Error, Result};
+use crate::factor::{lower_csc, scan_pivots, sym_matvec, FactorError, SparseCholesky};
+use crate::model::Model;
+use faer::sparse::SparseColMat;
+use faer::Mat;
+
+/// Largest kernel dimension accepted for one subdomain. Beyond it the
+/// subdomain is mostly mechanism and the partition is at fault.
+pub const MAX_KERNEL_DIM: usize = 256;
+
+/// Relative size of `‖K r‖ / (‖K‖ ‖r‖)` above which a computed kernel
+/// vector is rejected (indefinite or badly conditioned subdomain).
+pub const KERNEL_TOL: f64 = 1e-8;
+
+/// The factored stiffness of one subdomain.
+pub struct SubdomainOperator {
+    pub id: usize,
+    /// Lower triangle of `K_E` (kept for residual checks).
+    pub stiffness: SparseColMat<usize, f64>,
+    chol: SparseCholesky,
+    /// Fixing dofs (local); right-hand sides are zeroed there.
+    fixing: Vec<usize>,
+    /// Orthonormal kernel basis, `n × r` column-major.
+    kernel: Mat<f64>,
+}
+
+impl std::fmt::Debug for SubdomainOperator {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("SubdomainOperator")
+            .field("id", &self.id)
+            .field("n", &self.n())
+            .field("kernel_dim", &self.kernel_dim())
+            .finish()
+    }
+}
+
+impl SubdomainOperator {
+    /// Assembles and factors `K_E`; `max_rhs` sizes the batched-solve scratch.
+    pub fn new(id: usize, model: &Model, sd: &SubdomainDofs, max_rhs: usize) -> Result<SubdomainOperator> {
+        let n = sd.dofs.len();
+        let trip = model.stiffness_triplets(&sd.elements, |d| sd.local(d));
+        let stiffness = lower_csc(n, &trip).map_err(|e| Error::Numerical(format!("subdomain {id}: {e:?}")))?;
+        match SparseCholesky::factor(&stiffness, max_rhs) {
+            Ok(chol) => {
+                return Ok(SubdomainOperator { id, stiffness, chol, fixing: Vec::new(), kernel: Mat::zeros(n, 0) })
+            }
+            Err(FactorError::Internal(m)) => return Err(Error::Numerical(format!("subdomain {id}: {m}"))),
+            Err(FactorError::Pivot { .. }) => {}
+        }
+        Self::singular(id, model, sd, stiffness, max_rhs)
+    }
+
+    fn singular(
+        id: usize,
+        model: &Model,
+        sd: &SubdomainDofs,
+        stiffness: SparseColMat<usize, f64>,
+        max_rhs: usize,
+    ) -> Result<SubdomainOperator> {
+        let n = stiffness.nrows();
+        let indefinite = |dof: usize, what: String| {
+            let (node, c) = model.dof_owner(sd.dofs[dof]);
+            Error::IndefiniteSubdomain {
+                subdomain: id,
+                message: format!(
+                    "stiffness matrix is {what} at node {node} component {} (compressive geometric stiffness or bad conditioning)",
+                    ["x", "y", "z"][c]
+                ),
+            }
+        };
+        let scan = scan_pivots(&stiffness).map_err(|e| Error::Numerical(format!("subdomain {id}: {e:?}")))?;
+        if let Some(&(dof, ratio)) = scan.negative.iter().find(|(_, r)| *r < -1e-10) {
+            return Err(indefinite(dof, format!("indefinite (pivot ratio {ratio:.2e})")));
+        }
+        let mut fixing = scan.negligible;
+        if fixing.len() > MAX_KERNEL_DIM {
+            return Err(Error::IndefiniteSubdomain {
+                subdomain: id,
+                message: format!("kernel of dimension {} exceeds {MAX_KERNEL_DIM}: the partition cuts it into loose pieces", fixing.len()),
+            });
+        }
+        let scale = diag_max(&stiffness);
+        // Refactor with F decoupled; a late pivot failure adds to F.
+        let (regular, chol) = loop {
+            let regular = decouple(&stiffness, &fixing, scale);
+            match SparseCholesky::factor(&regular, max_rhs.max(fixing.len())) {
+                Ok(c) => break (regular, c),
+                Err(FactorError::Pivot { dof, negative: false, .. })
+                    if !fixing.contains(&dof) && fixing.len() < MAX_KERNEL_DIM =>
+                {
+                    fixing.push(dof);
+                    fixing.sort_unstable();
+                }
+                Err(FactorError::Pivot { dof, .. }) => return Err(indefinite(dof, "not positive definite".into())),
+                Err(FactorError::Internal(m)) => return Err(Error::Numerical(format!("subdomain {id}: {m}"))),
+            }
+        };
+        drop(regular);
+        let mut op = SubdomainOperator { id, stiffness, chol, fixing, kernel: Mat::zeros(n, 0) };
+        // R = [−K_rr⁻¹ K_rf; I]
+        let r = op.fixing.len();
+        let mut cols = vec![0.0; n * r];
+        let mut unit = vec![0.0; n];
+        for (j, &f) in op.fixing.iter().enumerate() {
+            unit[f] = 1.0;
+            let col = &mut cols[j * n..(j + 1) * n];
+            sym_matvec(&op.stiffness, &unit, col);
+            unit[f] = 0.0;
+            col.iter_mut().for_each(|v| *v = -*v);
+        }
+        op.solve_columns(&mut cols, r);
+        for (j, &f) in op.fixing.iter().enumerate() {
+            cols[j * n + f] = 1.0;
+        }
+        let raw = Mat::from_fn(n, r, |i, j| cols[j * n + i]);
+        let q = orthonormal_columns(&raw, 1e-10);
+        if q.ncols() < r {
+            return Err(Error::IndefiniteSubdomain {
+                subdomain: id,
+                message: "kernel basis is rank deficient: the stiffness is too badly conditioned".into(),
+            });
+        }
+        // A posteriori: every kernel vector must satisfy K r ≈ 0.
+        let mut kr = vec![0.0; n];
+        for j in 0..q.ncols() {
+            let col: Vec<f64> = (0..n).map(|i| q[(i, j)]).collect();
+            sym_matvec(&op.stiffness, &col, &mut kr);
+            let res = kr.iter().map(|v| v * v).sum::<f64>().sqrt() / scale;
+            if !(res < KERNEL_TOL) {
+                let worst = (0..n).fold(0, |b, i| if col[i].abs() > col[b].abs() { i } else { b });
+                return Err(indefinite(worst, format!("neither regular nor singular (‖K r‖/‖K‖ = {res:.1e})")));
+            }
+        }
+        op.kernel = q;
+        Ok(op)
+    }
+
+    /// Number of local dofs.
+    pub fn n(&self) -> usize {
+        self.chol.n()
+    }
+
+    /// Dimension of the kernel (0 for a regular subdomain).
+    pub fn kernel_dim(&self) -> usize {
+        self.kernel.ncols()
+    }
+
+    /// The orthonormal kernel basis `R_E` (`n × r`).
+    pub fn kernel(&self) -> &Mat<f64> {
+        &self.kernel
+    }
+
+    /// Stored entries of the factor.
+    pub fn nnz_l(&self) -> usize {
+        self.chol.nnz_l()
+    }
+
+    /// `r ← K⁺ r` (generalised inverse; exact when `r ⊥ R_E`). No allocation.
+    pub fn solve_in_place(&mut self, r: &mut [f64]) {
+        for &f in &self.fixing {
+            r[f] = 0.0;
+        }
+        self.chol.solve_in_place(r);
+    }
+
+    /// `K⁺` applied to `k` columns stored column-major in `data`.
+    pub fn solve_columns(&mut self, data: &mut [f64], k: usize) {
+        let n = self.n();
+        for j in 0..k {
+            for &f in &self.fixing {
+                data[j * n + f] = 0.0;
+            }
+        }
+        self.chol.solve_columns(data, k);
+    }
+
+    /// Diagonal of `K_E`.
+    pub fn diagonal(&self) -> Vec<f64> {
+        let a = self.stiffness.as_ref();
+        let mut d = vec![0.0; a.ncols()];
+        for j in 0..a.ncols() {
+            for (i, v) in a.row_idx_of_col(j).zip(a.val_of_col(j)) {
+                if i == j {
+                    d[j] += *v;
+                }
+            }
+        }
+        d
+    }
+
+    /// `y = K_E x`.
+    pub fn apply(&self, x: &[f64], y: &mut [f64]) {
+        sym_matvec(&self.stiffness, x, y);
+    }
+}
+
+fn diag_max(lower: &SparseColMat<usize, f64>) -> f64 {
+    let a = lower.as_ref();
+    let mut m = 0.0f64;
+    for j in 0..a.ncols() {
+        for (i, v) in a.row_idx_of_col(j).zip(a.val_of_col(j)) {
+            if i == j {
+                m = m.max(v.abs());
+            }
+        }
+    }
+    m.max(f64::MIN_POSITIVE)
+}
+
+/// Copy of `lower` with the rows and columns of `fixing` zeroed and `scale`
+/// on their diagonal (same pattern, so the symbolic analysis is alike).
+fn decouple(lower: &SparseColMat<usize, f64>, fixing: &[usize], scale: f64) -> SparseColMat<usize, f64> {
+    let n = lower.nrows();
+    let mut fixed = vec![false; n];
+    for &f in fixing {
+        fixed[f] = true;
+    }
+    let mut m = lower.clone();
+    let (symbolic, values) = m.parts_mut();
+    let col_ptr = symbolic.col_ptr();
+    let row_idx = symbolic.row_idx();
+    for j in 0..n {
+        for p in col_ptr[j]..col_ptr[j + 1] {
+            let i = row_idx[p];
+            if fixed[i] || fixed[j] {
+                values[p] = if i == j { scale } else { 0.0 };
+            }
+        }
+    }
+    m
+}
+
+/// Orthonormal basis of the column span of `a`, dropping directions whose
+/// singular value is below `rtol` times the largest (rank revealing).
+pub fn orthonormal_columns(a: &Mat<f64>, rtol: f64) -> Mat<f64> {
+    let (n, m) = (a.nrows(), a.ncols());
+    if m == 0 || n == 0 {
+        return Mat::zeros(n, 0);
+    }
+    // Unit columns first, so that scale differences between modes do not
+    // decide the rank; zero columns are dropped.
+    let norms: Vec<f64> = (0..m).map(|j| (0..n).map(|i| a[(i, j)] * a[(i, j)]).sum::<f64>().sqrt()).collect();
+    let nmax = norms.iter().fold(0.0f64, |x, &y| x.max(y));
+    let keep: Vec<usize> = (0..m).filter(|&j| norms[j] > 1e-14 * nmax && norms[j] > 0.0).collect();
+    if keep.is_empty() {
+        return Mat::zeros(n, 0);
+    }
+    let b = Mat::from_fn(n, keep.len(), |i, j| a[(i, keep[j])] / norms[keep[j]]);
+    let svd = match b.thin_svd() {
+        Ok(s) => s,
+        Err(_) => return Mat::zeros(n, 0),
+    };
+    let s = svd.S();
+    let u = svd.U();
+    let k = keep.len().min(n);
+    let smax = (0..k).map(|i| s[i]).fold(0.0f64, f64::max);
+    let rank = (0..k).filter(|&i| s[i] > rtol * smax).count();
+    Mat::from_fn(n, rank, |i, j| u[(i, j)])
+}
