@@ -46,24 +46,127 @@ const POWER_ITERATIONS: usize = 30;
 /// Indicator growth over the best value seen that counts as divergence.
 const DIVERGENCE_GROWTH: f64 = 1e6;
 
-#[derive(Debug, Clone, Copy)]
-struct LocalCable {
-    /// Index in `Model::cables`.
-    cable: usize,
-    dofs: [u32; 6],
-    dir: [f64; 3],
-    k: f64,
-    e0: f64,
+/// A unilateral cable seen from its subdomain: the column `h_c` of `H`
+/// (at most 6 entries, local dofs; unused slots hold [`NO_DOF`]), its
+/// stiffness `k_c` and prestrain `e0_c`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CableColumn {
+    /// Global cable index (position in the solution's `lambda`).
+    pub cable: usize,
+    pub dofs: [u32; 6],
+    pub coef: [f64; 6],
+    pub k: f64,
+    pub e0: f64,
 }
 
-const NO_DOF: u32 = u32::MAX;
+/// Unused slot of a [`CableColumn`].
+pub const NO_DOF: u32 = u32::MAX;
+
+impl CableColumn {
+    /// Elongation `h_cᵀ v`.
+    #[inline]
+    fn elongation(&self, v: &[f64]) -> f64 {
+        let mut x = 0.0;
+        for (&i, &c) in self.dofs.iter().zip(&self.coef) {
+            if i != NO_DOF {
+                x += c * v[i as usize];
+            }
+        }
+        x
+    }
+
+    /// `out += h_c · coef`.
+    #[inline]
+    fn add_to(&self, coef: f64, out: &mut [f64]) {
+        for (&i, &c) in self.dofs.iter().zip(&self.coef) {
+            if i != NO_DOF {
+                out[i as usize] += c * coef;
+            }
+        }
+    }
+}
+
+/// What the iteration needs of one subdomain besides its operator: the
+/// constant part of its right-hand side and its unilateral cables.
+#[derive(Debug, Clone, Default)]
+pub struct SubdomainLoad {
+    /// Constant local load (prestrain load `−Σ H k e0` of its elements).
+    pub constant: Vec<f64>,
+    pub cables: Vec<CableColumn>,
+}
+
+/// A DD problem in algebraic form: factored subdomain operators, their
+/// global dof ids (through the decomposition), the point and component of
+/// every global dof (for the macro modes), and the cable columns.
+pub struct DdProblem<'a> {
+    pub decomposition: &'a Decomposition,
+    pub operators: Vec<SubdomainOperator>,
+    pub loads: Vec<SubdomainLoad>,
+    /// Point and component (0..3) of each global dof.
+    pub dof_points: Vec<([f64; 3], usize)>,
+    pub n_cables: usize,
+}
+
+impl<'a> DdProblem<'a> {
+    /// Builds the algebraic problem of a truss model (factors every
+    /// subdomain in parallel).
+    pub fn from_model(model: &Model, dec: &'a Decomposition) -> Result<DdProblem<'a>> {
+        let ops: Vec<Result<SubdomainOperator>> = dec
+            .subdomains
+            .par_iter()
+            .enumerate()
+            .map(|(i, sd)| SubdomainOperator::new(i, model, sd, 64))
+            .collect();
+        let mut operators = Vec::with_capacity(ops.len());
+        for op in ops {
+            operators.push(op?);
+        }
+        let loads = dec
+            .subdomains
+            .iter()
+            .map(|sd| {
+                let n = sd.dofs.len();
+                let mut constant = vec![0.0; n];
+                let mut cables = Vec::new();
+                let local = |d: usize| if d == FIXED { NO_DOF } else { sd.local(d).map_or(NO_DOF, |l| l as u32) };
+                for &e in &sd.elements {
+                    let el = &model.elements[e];
+                    let dofs = model.element_dofs(e).map(local);
+                    let n = el.dir;
+                    let col = CableColumn {
+                        cable: usize::MAX,
+                        dofs,
+                        coef: [-n[0], -n[1], -n[2], n[0], n[1], n[2]],
+                        k: el.k,
+                        e0: el.e0,
+                    };
+                    if el.e0 != 0.0 {
+                        col.add_to(-el.k * el.e0, &mut constant);
+                    }
+                    if el.unilateral {
+                        let cable = model.cables.binary_search(&e).expect("unilateral element is a cable");
+                        cables.push(CableColumn { cable, ..col });
+                    }
+                }
+                SubdomainLoad { constant, cables }
+            })
+            .collect();
+        let dof_points = (0..model.n_free)
+            .map(|d| {
+                let (node, c) = model.dof_owner(d);
+                (model.coords[node], c)
+            })
+            .collect();
+        Ok(DdProblem { decomposition: dec, operators, loads, dof_points, n_cables: model.cables.len() })
+    }
+}
 
 struct SubState {
     op: SubdomainOperator,
     /// `(interface, is_lo)` for every interface of this subdomain.
     ifaces: Vec<(usize, bool)>,
     inv_mult: Vec<f64>,
-    /// `−Σ H k e0` of this subdomain's elements (prestrain load).
+    /// Constant local load (prestrain).
     prestrain: Vec<f64>,
     b: Vec<f64>,
     r: Vec<f64>,
@@ -77,7 +180,7 @@ struct SubState {
     alpha_off: usize,
     alpha: Vec<f64>,
     rt_r: Vec<f64>,
-    cables: Vec<LocalCable>,
+    cables: Vec<CableColumn>,
     lambda: Vec<f64>,
     elong: Vec<f64>,
     e0: Vec<f64>,
@@ -142,21 +245,22 @@ pub struct DdSolver {
 }
 
 impl DdSolver {
-    /// Factors every subdomain, builds the macro basis and the coarse
-    /// problem (multilevel), and picks `d`.
+    /// Sets up a truss model: factors every subdomain, builds the macro
+    /// basis and the coarse problem (multilevel), and picks `d`.
     pub fn new(model: &Model, dec: &Decomposition, opts: DdOptions) -> Result<DdSolver> {
         let t0 = Instant::now();
+        let problem = DdProblem::from_model(model, dec)?;
+        let mut solver = DdSolver::from_problem(problem, opts)?;
+        solver.stats.setup_s = t0.elapsed().as_secs_f64();
+        Ok(solver)
+    }
+
+    /// Sets up an algebraic problem (already factored operators).
+    pub fn from_problem(problem: DdProblem<'_>, opts: DdOptions) -> Result<DdSolver> {
+        let t0 = Instant::now();
+        let DdProblem { decomposition: dec, operators, loads, dof_points, n_cables } = problem;
         let ns = dec.len();
-        let ops: Vec<Result<SubdomainOperator>> = dec
-            .subdomains
-            .par_iter()
-            .enumerate()
-            .map(|(i, sd)| SubdomainOperator::new(i, model, sd, 64))
-            .collect();
-        let mut operators = Vec::with_capacity(ns);
-        for op in ops {
-            operators.push(op?);
-        }
+        let n_free = dof_points.len();
         let singular: Vec<usize> = operators.iter().filter(|o| o.kernel_dim() > 0).map(|o| o.id).collect();
         if !singular.is_empty() && (!opts.coarse || ns == 1) {
             let what = if ns == 1 {
@@ -199,13 +303,7 @@ impl DdSolver {
                 .zip(ifaces.par_iter())
                 .map(|(it, st)| {
                     let dofs = &dec.entry_dof[it.start..it.end];
-                    let (points, comp): (Vec<[f64; 3]>, Vec<usize>) = dofs
-                        .iter()
-                        .map(|&d| {
-                            let (node, c) = model.dof_owner(d);
-                            (model.coords[node], c)
-                        })
-                        .unzip();
+                    let (points, comp): (Vec<[f64; 3]>, Vec<usize>) = dofs.iter().map(|&d| dof_points[d]).unzip();
                     let rlo = operators[it.lo].kernel();
                     let rhi = operators[it.hi].kernel();
                     let tlo = Mat::from_fn(it.len(), rlo.ncols(), |j, q| rlo[(st.lo_idx[j] as usize, q)]);
@@ -226,25 +324,12 @@ impl DdSolver {
         // Per-subdomain state.
         let mut alpha_off = 0;
         let mut subs: Vec<SubState> = Vec::with_capacity(ns);
-        for (s, op) in operators.into_iter().enumerate() {
+        for (s, (op, load)) in operators.into_iter().zip(loads).enumerate() {
             let sd = &dec.subdomains[s];
             let n = op.n();
             let ifs: Vec<(usize, bool)> =
                 sd.interfaces.iter().map(|&i| (i, dec.interfaces[i].lo == s)).collect();
-            let mut prestrain = vec![0.0; n];
-            let mut cables = Vec::new();
-            let local = |d: usize| if d == FIXED { NO_DOF } else { sd.local(d).map_or(NO_DOF, |l| l as u32) };
-            for &e in &sd.elements {
-                let el = &model.elements[e];
-                let dofs = model.element_dofs(e).map(local);
-                if el.e0 != 0.0 {
-                    add_h_local(&dofs, el.dir, -el.k * el.e0, &mut prestrain);
-                }
-                if el.unilateral {
-                    let cable = model.cables.binary_search(&e).expect("unilateral element is a cable");
-                    cables.push(LocalCable { cable, dofs, dir: el.dir, k: el.k, e0: el.e0 });
-                }
-            }
+            let SubdomainLoad { constant: prestrain, cables } = load;
             let r = op.kernel_dim();
             let nc = cables.len();
             subs.push(SubState {
@@ -361,8 +446,8 @@ impl DdSolver {
             coarse,
             d: 0.0,
             opts,
-            n_free: model.n_free,
-            n_cables: model.cables.len(),
+            n_free,
+            n_cables,
             dof_maps: dec.subdomains.iter().map(|s| s.dofs.clone()).collect(),
             stats,
         };
@@ -557,7 +642,7 @@ impl DdSolver {
             if with_cables {
                 for (c, &lam) in s.cables.iter().zip(&s.lambda) {
                     if lam != 0.0 {
-                        add_h_local(&c.dofs, c.dir, -c.k * lam, &mut s.r);
+                        c.add_to(-c.k * lam, &mut s.r);
                     }
                 }
             }
@@ -674,28 +759,6 @@ impl DdSolver {
 
 fn cable_elongations(s: &mut SubState) {
     for (c, e) in s.cables.iter().zip(s.elong.iter_mut()) {
-        let mut x = 0.0;
-        for d in 0..3 {
-            if c.dofs[3 + d] != NO_DOF {
-                x += c.dir[d] * s.v[c.dofs[3 + d] as usize];
-            }
-            if c.dofs[d] != NO_DOF {
-                x -= c.dir[d] * s.v[c.dofs[d] as usize];
-            }
-        }
-        *e = x;
-    }
-}
-
-/// `out += H_e · coef` on local dofs.
-#[inline]
-fn add_h_local(dofs: &[u32; 6], dir: [f64; 3], coef: f64, out: &mut [f64]) {
-    for d in 0..3 {
-        if dofs[d] != NO_DOF {
-            out[dofs[d] as usize] -= dir[d] * coef;
-        }
-        if dofs[3 + d] != NO_DOF {
-            out[dofs[3 + d] as usize] += dir[d] * coef;
-        }
+        *e = c.elongation(&s.v);
     }
 }

@@ -6,11 +6,13 @@ pub mod decomposition;
 pub mod direct;
 pub mod factor;
 pub mod kernels;
+pub mod generate;
 pub mod model;
 pub mod partition;
 pub mod result;
 pub mod scene;
 pub mod solve;
 pub mod subdomain;
+pub mod vtk;
 
 pub use error::{Error, Result};

@@ -474,3 +474,179 @@ impl Scene {
         serde_json::to_string_pretty(self).map_err(|e| Error::Parse(e.to_string()))
     }
 }
+
+/// Builds a [`Scene`] entry by entry while keeping the columnar arrays
+/// consistent: every element gets `a`, `b`, `kind` and `ea`; `t0` stays empty
+/// until some element is prestressed and then covers every element (0 for the
+/// others); every load gets `fx`, `fy` and `fz`.
+///
+/// The builder records what it is given and never panics: an out-of-range
+/// index is kept as is and reported by [`Scene::validate`] (through
+/// [`SceneBuilder::build_validated`]), naming the field and entry like any
+/// scene read from a file.
+///
+/// ```
+/// use nsdd::scene::{Effects, SceneBuilder};
+/// let mut b = SceneBuilder::new("two-bars");
+/// let n0 = b.node(0.0, 0.0, 0.0);
+/// let n1 = b.node(1.0, 0.0, 0.0);
+/// let n2 = b.node(0.0, 1.0, 0.0);
+/// b.bar(n0, n1, 1e3);
+/// let c = b.cable(n2, n1, 1e2);
+/// b.prestress(c, 0.5);
+/// b.support(n0, "xyz").support(n2, "xyz").support(n1, "z");
+/// b.load(n1, [0.0, -1.0, 0.0]);
+/// b.effects(Effects { unilateral_cables: true, prestress: true, ..Effects::default() });
+/// let scene = b.build_validated().unwrap();
+/// assert_eq!(scene.elements.t0, vec![0.0, 0.5]);
+/// ```
+#[derive(Debug, Clone, Default)]
+pub struct SceneBuilder {
+    scene: Scene,
+    /// First `prestress` call on an element that did not exist.
+    bad_prestress: Option<usize>,
+}
+
+impl SceneBuilder {
+    /// An empty scene called `name`, with default effects and solver settings.
+    pub fn new(name: impl Into<String>) -> Self {
+        let mut scene = Scene::default();
+        scene.scene.name = name.into();
+        SceneBuilder { scene, bad_prestress: None }
+    }
+
+    /// Like [`SceneBuilder::new`], reserving room for `nodes` nodes and
+    /// `elements` elements (generators of million-dof scenes use it to avoid
+    /// repeated reallocation).
+    pub fn with_capacity(name: impl Into<String>, nodes: usize, elements: usize) -> Self {
+        let mut b = SceneBuilder::new(name);
+        let n = &mut b.scene.nodes;
+        n.x.reserve_exact(nodes);
+        n.y.reserve_exact(nodes);
+        n.z.reserve_exact(nodes);
+        let e = &mut b.scene.elements;
+        e.a.reserve_exact(elements);
+        e.b.reserve_exact(elements);
+        e.kind.reserve_exact(elements);
+        e.ea.reserve_exact(elements);
+        b
+    }
+
+    /// Number of nodes added so far.
+    pub fn n_nodes(&self) -> usize {
+        self.scene.nodes.x.len()
+    }
+
+    /// Number of elements added so far.
+    pub fn n_elements(&self) -> usize {
+        self.scene.elements.a.len()
+    }
+
+    /// Adds a node and returns its index.
+    pub fn node(&mut self, x: f64, y: f64, z: f64) -> usize {
+        let n = &mut self.scene.nodes;
+        n.x.push(x);
+        n.y.push(y);
+        n.z.push(z);
+        n.x.len() - 1
+    }
+
+    /// Adds an element of the given kind between nodes `a` and `b` and returns
+    /// its index.
+    pub fn element(&mut self, a: usize, b: usize, kind: ElementKind, ea: f64) -> usize {
+        let e = &mut self.scene.elements;
+        e.a.push(a);
+        e.b.push(b);
+        e.kind.push(kind);
+        e.ea.push(ea);
+        if !e.t0.is_empty() && e.t0.len() < e.a.len() {
+            e.t0.resize(e.a.len(), 0.0);
+        }
+        e.a.len() - 1
+    }
+
+    /// Adds a bar (bilateral element) and returns its index.
+    pub fn bar(&mut self, a: usize, b: usize, ea: f64) -> usize {
+        self.element(a, b, ElementKind::Bar, ea)
+    }
+
+    /// Adds a cable and returns its index.
+    pub fn cable(&mut self, a: usize, b: usize, ea: f64) -> usize {
+        self.element(a, b, ElementKind::Cable, ea)
+    }
+
+    /// Sets the prestress `t0` (tension positive) of element `elem`, which
+    /// must have been added already. This only records the value: the
+    /// `prestress` effect is switched on with [`SceneBuilder::effects`], as in
+    /// a scene file. An unknown element is an error of `elements.t0` at that
+    /// index from [`SceneBuilder::build_validated`] (and makes
+    /// [`SceneBuilder::build`] return a scene whose `t0` is one entry too
+    /// long, which [`Scene::validate`] rejects).
+    pub fn prestress(&mut self, elem: usize, t0: f64) -> &mut Self {
+        let e = &mut self.scene.elements;
+        let m = e.a.len();
+        if elem >= m {
+            self.bad_prestress.get_or_insert(elem);
+            return self;
+        }
+        if e.t0.len() < m {
+            e.t0.resize(m, 0.0);
+        }
+        e.t0[elem] = t0;
+        self
+    }
+
+    /// Blocks the components `dofs` (any of `x`, `y`, `z`) of `node`.
+    pub fn support(&mut self, node: usize, dofs: &str) -> &mut Self {
+        self.scene.supports.node.push(node);
+        self.scene.supports.dofs.push(dofs.to_string());
+        self
+    }
+
+    /// Adds a nodal force `[fx, fy, fz]` on `node` (load case 0).
+    pub fn load(&mut self, node: usize, f: [f64; 3]) -> &mut Self {
+        let l = &mut self.scene.loads;
+        l.node.push(node);
+        l.fx.push(f[0]);
+        l.fy.push(f[1]);
+        l.fz.push(f[2]);
+        self
+    }
+
+    /// Sets the effects the scene calls for.
+    pub fn effects(&mut self, effects: Effects) -> &mut Self {
+        self.scene.effects = effects;
+        self
+    }
+
+    /// Sets the solver settings.
+    pub fn solver(&mut self, solver: SolverSettings) -> &mut Self {
+        self.scene.solver = solver;
+        self
+    }
+
+    /// The scene as built, without validation.
+    pub fn build(self) -> Scene {
+        let mut scene = self.scene;
+        let m = scene.elements.a.len();
+        if !scene.elements.t0.is_empty() || self.bad_prestress.is_some() {
+            let len = if self.bad_prestress.is_some() { m + 1 } else { m };
+            scene.elements.t0.resize(len, 0.0);
+        }
+        scene
+    }
+
+    /// The scene as built, checked by [`Scene::validate`].
+    pub fn build_validated(self) -> Result<Scene> {
+        if let Some(e) = self.bad_prestress {
+            return Err(Error::input(
+                "elements.t0",
+                Some(e),
+                format!("prestress given for element {e}, but the scene has {} elements", self.n_elements()),
+            ));
+        }
+        let scene = self.build();
+        scene.validate()?;
+        Ok(scene)
+    }
+}
