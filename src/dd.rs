@@ -536,25 +536,58 @@ impl DdSolver {
         Ok(d.min(cap))
     }
 
-    /// Solves for the external nodal forces `f_ext` (free dofs). With `warm`,
-    /// starts from the interface forces and slacks of the previous solve.
+    /// Solves for the external nodal forces `f_ext` (global dofs); a force
+    /// on a dof shared by `m` subdomains is split equally between them. With
+    /// `warm`, starts from the interface forces and slacks of the previous
+    /// solve (load paths).
     pub fn solve(
         &mut self,
         f_ext: &[f64],
         warm: bool,
-        mut progress: Option<&mut dyn FnMut(usize, f64)>,
+        progress: Option<&mut dyn FnMut(usize, f64)>,
     ) -> Result<DdOutcome> {
-        let t0 = Instant::now();
+        if f_ext.len() != self.n_free {
+            return Err(Error::input("rhs", None, format!("has {} entries, expected {}", f_ext.len(), self.n_free)));
+        }
         let subs_dofs = &self.dof_maps;
         self.subs.par_iter_mut().zip(subs_dofs.par_iter()).for_each(|(s, dofs)| {
             for (l, &d) in dofs.iter().enumerate() {
                 s.b[l] = f_ext[d] * s.inv_mult[l] + s.prestrain[l];
             }
-            if !warm {
-                s.lambda.iter_mut().for_each(|v| *v = 0.0);
+        });
+        self.iterate(warm, progress)
+    }
+
+    /// Solves for right-hand sides given per subdomain in local numbering
+    /// (the algebraic level: each subdomain's share of the load).
+    pub fn solve_local(
+        &mut self,
+        rhs: &[&[f64]],
+        warm: bool,
+        progress: Option<&mut dyn FnMut(usize, f64)>,
+    ) -> Result<DdOutcome> {
+        if rhs.len() != self.subs.len() {
+            return Err(Error::input("rhs", None, format!("{} subdomain vectors given, expected {}", rhs.len(), self.subs.len())));
+        }
+        for (i, (s, r)) in self.subs.iter().zip(rhs).enumerate() {
+            if r.len() != s.b.len() {
+                return Err(Error::input("rhs", Some(i), format!("has {} entries, subdomain {i} has {} dofs", r.len(), s.b.len())));
+            }
+        }
+        self.subs.par_iter_mut().zip(rhs.par_iter()).for_each(|(s, r)| {
+            for ((b, &x), &p) in s.b.iter_mut().zip(r.iter()).zip(&s.prestrain) {
+                *b = x + p;
             }
         });
+        self.iterate(warm, progress)
+    }
+
+    fn iterate(&mut self, warm: bool, mut progress: Option<&mut dyn FnMut(usize, f64)>) -> Result<DdOutcome> {
+        let t0 = Instant::now();
         if !warm {
+            for s in self.subs.iter_mut() {
+                s.lambda.iter_mut().for_each(|v| *v = 0.0);
+            }
             for it in self.ifaces.iter_mut() {
                 it.force.iter_mut().for_each(|f| *f = 0.0);
             }

@@ -86,25 +86,35 @@ pub struct QualityReport {
 }
 
 impl Decomposition {
-    /// Builds subdomain dof sets and pairwise interfaces.
+    /// Builds subdomain dof sets and pairwise interfaces of a truss model.
     pub fn new(model: &Model, partition: Partition) -> Decomposition {
-        let n_parts = partition.len();
+        let dof_sets = partition
+            .elements_of
+            .iter()
+            .map(|elems| {
+                let mut dofs: Vec<usize> =
+                    elems.iter().flat_map(|&e| model.element_dofs(e)).filter(|&d| d != FIXED).collect();
+                dofs.sort_unstable();
+                dofs.dedup();
+                dofs
+            })
+            .collect();
+        Self::from_dof_sets(partition, dof_sets, model.n_free)
+    }
+
+    /// Builds the interfaces from each subdomain's sorted global dof ids
+    /// (the algebraic entry point: dofs with equal ids are glued).
+    pub fn from_dof_sets(partition: Partition, dof_sets: Vec<Vec<usize>>, n_global: usize) -> Decomposition {
+        let n_parts = dof_sets.len();
         // Subdomains touching each free dof, sorted and unique.
-        let mut touch: Vec<Vec<u32>> = vec![Vec::new(); model.n_free];
+        let mut touch: Vec<Vec<u32>> = vec![Vec::new(); n_global];
         let mut subdomains = Vec::with_capacity(n_parts);
-        for (s, elems) in partition.elements_of.iter().enumerate() {
-            let mut dofs: Vec<usize> = elems
-                .iter()
-                .flat_map(|&e| model.element_dofs(e))
-                .filter(|&d| d != FIXED)
-                .collect();
-            dofs.sort_unstable();
-            dofs.dedup();
+        for (s, dofs) in dof_sets.into_iter().enumerate() {
             for &d in &dofs {
                 touch[d].push(s as u32);
             }
             subdomains.push(SubdomainDofs {
-                elements: elems.clone(),
+                elements: partition.elements_of.get(s).cloned().unwrap_or_default(),
                 dofs,
                 multiplicity: Vec::new(),
                 interfaces: Vec::new(),

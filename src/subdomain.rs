@@ -54,6 +54,64 @@ impl SubdomainOperator {
         let n = sd.dofs.len();
         let trip = model.stiffness_triplets(&sd.elements, |d| sd.local(d));
         let stiffness = lower_csc(n, &trip).map_err(|e| Error::Numerical(format!("subdomain {id}: {e:?}")))?;
+        let name = |l: usize| {
+            let (node, c) = model.dof_owner(sd.dofs[l]);
+            format!("node {node} component {}", ["x", "y", "z"][c])
+        };
+        Self::from_matrix(id, stiffness, max_rhs, None, &name)
+    }
+
+    /// Factors a given symmetric matrix (lower triangle, CSC). `kernel`, if
+    /// given, is the caller's kernel basis: it must span the detected kernel
+    /// (`K R ≈ 0`, same dimension) and replaces the computed one.
+    /// `name` describes a local dof in error messages.
+    pub fn from_matrix(
+        id: usize,
+        stiffness: SparseColMat<usize, f64>,
+        max_rhs: usize,
+        kernel: Option<&Mat<f64>>,
+        name: &dyn Fn(usize) -> String,
+    ) -> Result<SubdomainOperator> {
+        let n = stiffness.nrows();
+        if let Some(r) = kernel {
+            if r.nrows() != n {
+                return Err(Error::input("kernel", Some(id), format!("has {} rows, the subdomain has {n} dofs", r.nrows())));
+            }
+        }
+        let mut op = Self::factor_matrix(id, stiffness, max_rhs, name)?;
+        if let Some(r) = kernel {
+            let q = orthonormal_columns(r, 1e-10);
+            if q.ncols() != op.kernel_dim() {
+                return Err(Error::input(
+                    "kernel",
+                    Some(id),
+                    format!("given kernel has rank {} but the matrix has a kernel of dimension {}", q.ncols(), op.kernel_dim()),
+                ));
+            }
+            if q.ncols() > 0 {
+                let scale = diag_max(&op.stiffness);
+                let mut kr = vec![0.0; n];
+                for j in 0..q.ncols() {
+                    let col: Vec<f64> = (0..n).map(|i| q[(i, j)]).collect();
+                    sym_matvec(&op.stiffness, &col, &mut kr);
+                    let res = kr.iter().map(|v| v * v).sum::<f64>().sqrt() / scale;
+                    if !(res < KERNEL_TOL) {
+                        return Err(Error::input("kernel", Some(id), format!("column {j} is not in the kernel (‖K r‖/‖K‖ = {res:.1e})")));
+                    }
+                }
+                op.kernel = q;
+            }
+        }
+        Ok(op)
+    }
+
+    fn factor_matrix(
+        id: usize,
+        stiffness: SparseColMat<usize, f64>,
+        max_rhs: usize,
+        name: &dyn Fn(usize) -> String,
+    ) -> Result<SubdomainOperator> {
+        let n = stiffness.nrows();
         match SparseCholesky::factor(&stiffness, max_rhs) {
             Ok(chol) => {
                 return Ok(SubdomainOperator { id, stiffness, chol, fixing: Vec::new(), kernel: Mat::zeros(n, 0) })
@@ -61,26 +119,22 @@ impl SubdomainOperator {
             Err(FactorError::Internal(m)) => return Err(Error::Numerical(format!("subdomain {id}: {m}"))),
             Err(FactorError::Pivot { .. }) => {}
         }
-        Self::singular(id, model, sd, stiffness, max_rhs)
+        Self::singular(id, stiffness, max_rhs, name)
     }
 
     fn singular(
         id: usize,
-        model: &Model,
-        sd: &SubdomainDofs,
         stiffness: SparseColMat<usize, f64>,
         max_rhs: usize,
+        name: &dyn Fn(usize) -> String,
     ) -> Result<SubdomainOperator> {
         let n = stiffness.nrows();
-        let indefinite = |dof: usize, what: String| {
-            let (node, c) = model.dof_owner(sd.dofs[dof]);
-            Error::IndefiniteSubdomain {
-                subdomain: id,
-                message: format!(
-                    "stiffness matrix is {what} at node {node} component {} (compressive geometric stiffness or bad conditioning)",
-                    ["x", "y", "z"][c]
-                ),
-            }
+        let indefinite = |dof: usize, what: String| Error::IndefiniteSubdomain {
+            subdomain: id,
+            message: format!(
+                "stiffness matrix is {what} at {} (compressive geometric stiffness or bad conditioning)",
+                name(dof)
+            ),
         };
         let scan = scan_pivots(&stiffness).map_err(|e| Error::Numerical(format!("subdomain {id}: {e:?}")))?;
         if let Some(&(dof, ratio)) = scan.negative.iter().find(|(_, r)| *r < -1e-10) {
