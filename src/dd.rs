@@ -173,6 +173,11 @@ struct SubState {
     y: Vec<f64>,
     v: Vec<f64>,
     g: Vec<f64>,
+    /// Interface dofs of this subdomain (local, unique, increasing).
+    iface_dofs: Vec<u32>,
+    /// Search-direction weight per local dof: 1 for a scalar `d`, the
+    /// diagonal of `K_E` for the lumped choice.
+    weight: Vec<f64>,
     /// `Z_E = K_E⁺ W_E` (`n × m_E`) and the global macro index of each column.
     z: Mat<f64>,
     macro_cols: Vec<usize>,
@@ -341,6 +346,8 @@ impl DdSolver {
                 y: vec![0.0; n],
                 v: vec![0.0; n],
                 g: vec![0.0; n],
+                iface_dofs: Vec::new(),
+                weight: vec![1.0; n],
                 z: Mat::zeros(0, 0),
                 macro_cols: Vec::new(),
                 fm: Vec::new(),
@@ -366,6 +373,19 @@ impl DdSolver {
                 .zip(&it.hi_idx)
                 .map(|(&a, &b)| diags[it.lo][a as usize] + diags[it.hi][b as usize])
                 .collect();
+        }
+        let lumped = matches!(opts.search_direction, SearchDirection::Auto);
+        for (s, st) in subs.iter_mut().enumerate() {
+            let mut dofs: Vec<u32> = Vec::new();
+            for &(i, is_lo) in &st.ifaces {
+                dofs.extend(if is_lo { &ifaces[i].lo_idx } else { &ifaces[i].hi_idx });
+            }
+            dofs.sort_unstable();
+            dofs.dedup();
+            st.iface_dofs = dofs;
+            if lumped {
+                st.weight = diags[s].clone();
+            }
         }
         drop(diags);
 
@@ -485,11 +505,15 @@ impl DdSolver {
         self.stats.kernel_unknowns > 0
     }
 
-    /// `d = AUTO_D_FACTOR · 2 / λ_max(M X_P)`, where `M = Σ B_Eᵀ B_E` and
-    /// `X_P` is the interface operator with the coarse step inside: the
-    /// stationary iteration converges for `d < 2 / λ_max`. `λ_max` comes from
-    /// a power iteration on the same kernels as the solve, so it follows the
-    /// stiffness scale (EA/L) and the geometry of every interface.
+    /// The automatic search direction is the paper's lumped choice
+    /// `(X^D)⁻¹ = θ Σ_E B_Eᵀ diag(K_E) B_E`: each interface dof gets the
+    /// stiffness of its own elements, so soft cables and stiff bars are each
+    /// iterated at their own scale (a single scalar `d` must fit the softest
+    /// direction and then crawls on the stiff ones). `θ = AUTO_D_FACTOR ·
+    /// 2 / λ_max(M X_P)`, with `M = Σ B_Eᵀ diag(K_E) B_E` and `X_P` the
+    /// interface operator with the coarse step inside, is a fixed fraction
+    /// of the stability limit; `λ_max` comes from a power iteration on the
+    /// same kernels as the solve.
     fn auto_search_direction(&mut self) -> Result<f64> {
         if self.ifaces.is_empty() {
             return Ok(1.0);
@@ -531,7 +555,7 @@ impl DdSolver {
         // When the macro space covers (nearly) all of the interface, the
         // projected operator vanishes and only round-off is left to iterate
         // on: cap d by the lumped interface stiffness, the scale of X⁻¹.
-        let cap = 0.5 * self.ifaces.iter().flat_map(|i| i.stiffness.iter()).fold(0.0f64, |m, &k| m.max(k));
+        let cap = 0.5;
         let d = if lambda_max > 0.0 { AUTO_D_FACTOR * 2.0 / lambda_max } else { cap };
         Ok(d.min(cap))
     }
@@ -748,7 +772,9 @@ impl DdSolver {
         });
     }
 
-    /// `F += d Σ_E B_Eᵀ B_E jump` (cross points couple their pair entries).
+    /// `F += d Σ_E B_Eᵀ D_E B_E jump` (cross points couple their pair
+    /// entries); `D_E` is the identity for a scalar `d` and `diag(K_E)` for
+    /// the lumped search direction (the paper's "lumped" `X^D`).
     fn force_stage(&mut self, d: f64) {
         let ifaces = &self.ifaces;
         self.subs.par_iter_mut().for_each(|s| {
@@ -757,19 +783,17 @@ impl DdSolver {
                 let (idx, coef) = if is_lo { (&it.lo_idx, 1.0) } else { (&it.hi_idx, -1.0) };
                 kernels::scatter_add(&mut s.g, idx, &it.jump, coef);
             }
+            for &l in &s.iface_dofs {
+                s.g[l as usize] *= s.weight[l as usize];
+            }
         });
         let subs = &self.subs;
         self.ifaces.par_iter_mut().for_each(|it| {
             kernels::force_update(&mut it.force, d, &subs[it.lo].g, &it.lo_idx, &subs[it.hi].g, &it.hi_idx);
         });
-        let ifaces = &self.ifaces;
         self.subs.par_iter_mut().for_each(|s| {
-            for &(i, is_lo) in &s.ifaces {
-                let it = &ifaces[i];
-                let idx = if is_lo { &it.lo_idx } else { &it.hi_idx };
-                for &l in idx.iter() {
-                    s.g[l as usize] = 0.0;
-                }
+            for &l in &s.iface_dofs {
+                s.g[l as usize] = 0.0;
             }
         });
     }
