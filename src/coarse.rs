@@ -211,6 +211,12 @@ impl CoarseProblem {
         }
     }
 
+    /// The operator `L` (copy of the macro block).
+    pub fn operator(&self) -> Mat<f64> {
+        let nf = self.n_macro;
+        Mat::from_fn(nf, nf, |i, j| self.matrix[(i, j)])
+    }
+
     /// Macro forces `f` of the last solve.
     pub fn macro_forces(&self) -> &[f64] {
         &self.solution[..self.n_macro]

@@ -490,6 +490,32 @@ impl DdSolver {
         self.d
     }
 
+    /// The macro basis `P_Γ` of each interface (empty without coarse step).
+    pub fn macro_blocks(&self) -> Vec<&Mat<f64>> {
+        self.ifaces.iter().map(|i| &i.p).collect()
+    }
+
+    /// The assembled coarse operator `L` (macro block of the saddle system).
+    pub fn coarse_operator(&self) -> Option<Mat<f64>> {
+        self.coarse.as_ref().map(|c| c.operator())
+    }
+
+    /// The factored operator of subdomain `s`.
+    pub fn operator(&self, s: usize) -> &SubdomainOperator {
+        &self.subs[s].op
+    }
+
+    /// Mutable access to the operator of subdomain `s` (for solves in tests
+    /// and tools; the iteration does not depend on its scratch state).
+    pub fn operator_mut(&mut self, s: usize) -> &mut SubdomainOperator {
+        &mut self.subs[s].op
+    }
+
+    /// Number of subdomains.
+    pub fn n_subdomains(&self) -> usize {
+        self.subs.len()
+    }
+
     /// Whether this solver runs a coarse step.
     pub fn has_coarse(&self) -> bool {
         self.coarse.is_some()

@@ -218,6 +218,11 @@ impl SubdomainOperator {
         &self.kernel
     }
 
+    /// Fixing dofs (local) of a singular subdomain: `K⁺ r = [K_rr⁻¹ r_r; 0]`.
+    pub fn fixing_dofs(&self) -> &[usize] {
+        &self.fixing
+    }
+
     /// Stored entries of the factor.
     pub fn nnz_l(&self) -> usize {
         self.chol.nnz_l()

@@ -1,0 +1,159 @@
+//! Shared helpers of the integration tests.
+#![allow(dead_code)]
+
+use nsdd::scene::{Effects, Method, Scene, SceneBuilder, SearchDirection};
+use nsdd::solve::{solve, SolveOptions};
+
+/// Relative 2-norm error of `a` against `b`.
+pub fn rel_err(a: &[f64], b: &[f64]) -> f64 {
+    let num: f64 = a.iter().zip(b).map(|(x, y)| (x - y) * (x - y)).sum::<f64>().sqrt();
+    let den: f64 = b.iter().map(|y| y * y).sum::<f64>().sqrt();
+    if den == 0.0 {
+        num
+    } else {
+        num / den
+    }
+}
+
+pub fn flat(v: &[[f64; 3]]) -> Vec<f64> {
+    v.iter().flatten().copied().collect()
+}
+
+pub fn opts(method: Method, subdomains: usize, tol: f64) -> SolveOptions {
+    SolveOptions {
+        method,
+        subdomains,
+        tolerance: tol,
+        max_iterations: 200_000,
+        search_direction: SearchDirection::Auto,
+    }
+}
+
+/// Solves with `method` and with the direct solver and checks the DESIGN
+/// criterion: relative errors at most 10× the tolerance, same slack set.
+/// Returns the iteration count.
+pub fn assert_matches_direct(scene: &Scene, method: Method, subdomains: usize, tol: f64) -> usize {
+    let direct = solve(scene, &opts(Method::Direct, 1, tol)).expect("direct solve");
+    let dd = solve(scene, &opts(method, subdomains, tol))
+        .unwrap_or_else(|e| panic!("{} with {subdomains} subdomains: {e}", scene.scene.name));
+    assert!(dd.converged, "{} with {subdomains} subdomains: not converged after {}", scene.scene.name, dd.iterations);
+    for v in dd.displacements.iter().flatten().chain(&dd.tensions) {
+        assert!(v.is_finite(), "non-finite value in the result");
+    }
+    let eu = rel_err(&flat(&dd.displacements), &flat(&direct.displacements));
+    let et = rel_err(&dd.tensions, &direct.tensions);
+    assert!(eu <= 10.0 * tol, "{} {subdomains}: displacement error {eu:.2e}", scene.scene.name);
+    assert!(et <= 10.0 * tol, "{} {subdomains}: tension error {et:.2e}", scene.scene.name);
+    assert_eq!(dd.slack, direct.slack, "{} {subdomains}: slack sets differ", scene.scene.name);
+    dd.iterations
+}
+
+/// A planar square grid of `n × n` cells of bars with both diagonals, in
+/// the plane z = 0 (z blocked everywhere), supported on its left edge and
+/// loaded at the right edge. Node (i, j) is `i * (n + 1) + j`.
+pub fn planar_grid(n: usize, user_partition: Option<&dyn Fn(usize, usize) -> usize>) -> Scene {
+    let mut b = SceneBuilder::new("planar-grid");
+    for i in 0..=n {
+        for j in 0..=n {
+            b.node(i as f64, j as f64, 0.0);
+        }
+    }
+    let id = |i: usize, j: usize| i * (n + 1) + j;
+    let mut part = Vec::new();
+    for i in 0..n {
+        for j in 0..n {
+            let cell = user_partition.map(|f| f(i, j)).unwrap_or(0);
+            for (a, c) in [
+                (id(i, j), id(i + 1, j)),
+                (id(i, j), id(i, j + 1)),
+                (id(i, j), id(i + 1, j + 1)),
+                (id(i + 1, j), id(i, j + 1)),
+            ] {
+                b.bar(a, c, 100.0);
+                part.push(cell);
+            }
+            if i == n - 1 {
+                b.bar(id(i + 1, j), id(i + 1, j + 1), 100.0);
+                part.push(cell);
+            }
+            if j == n - 1 {
+                b.bar(id(i, j + 1), id(i + 1, j + 1), 100.0);
+                part.push(cell);
+            }
+        }
+    }
+    for j in 0..=n {
+        b.support(id(0, j), "xyz");
+        for i in 1..=n {
+            b.support(id(i, j), "z");
+        }
+        b.load(id(n, j), [0.3, -1.0, 0.0]);
+    }
+    let mut s = b.build();
+    if user_partition.is_some() {
+        s.elements.subdomain = part;
+    }
+    s
+}
+
+/// A cubic lattice of `n × n × n` cells (edges bars, face diagonals cables,
+/// one body diagonal bar), fixed at z = 0, with a lateral top load.
+pub fn cube_lattice(n: usize, unilateral: bool, user_partition: Option<&dyn Fn(usize, usize, usize) -> usize>) -> Scene {
+    let mut b = SceneBuilder::new("cube-lattice");
+    let m = n + 1;
+    let id = |i: usize, j: usize, k: usize| (k * m + j) * m + i;
+    for k in 0..m {
+        for j in 0..m {
+            for i in 0..m {
+                b.node(i as f64, j as f64, k as f64);
+            }
+        }
+    }
+    let mut part = Vec::new();
+    let mut seen = std::collections::HashSet::new();
+    for k in 0..n {
+        for j in 0..n {
+            for i in 0..n {
+                let cell = user_partition.map(|f| f(i, j, k)).unwrap_or(0);
+                let c = |di: usize, dj: usize, dk: usize| id(i + di, j + dj, k + dk);
+                let edges = [
+                    (c(0, 0, 0), c(1, 0, 0)), (c(0, 1, 0), c(1, 1, 0)), (c(0, 0, 1), c(1, 0, 1)), (c(0, 1, 1), c(1, 1, 1)),
+                    (c(0, 0, 0), c(0, 1, 0)), (c(1, 0, 0), c(1, 1, 0)), (c(0, 0, 1), c(0, 1, 1)), (c(1, 0, 1), c(1, 1, 1)),
+                    (c(0, 0, 0), c(0, 0, 1)), (c(1, 0, 0), c(1, 0, 1)), (c(0, 1, 0), c(0, 1, 1)), (c(1, 1, 0), c(1, 1, 1)),
+                ];
+                let faces = [
+                    (c(0, 0, 0), c(1, 1, 0)), (c(1, 0, 0), c(0, 1, 0)), (c(0, 0, 1), c(1, 1, 1)), (c(1, 0, 1), c(0, 1, 1)),
+                    (c(0, 0, 0), c(1, 0, 1)), (c(1, 0, 0), c(0, 0, 1)), (c(0, 1, 0), c(1, 1, 1)), (c(1, 1, 0), c(0, 1, 1)),
+                    (c(0, 0, 0), c(0, 1, 1)), (c(0, 1, 0), c(0, 0, 1)), (c(1, 0, 0), c(1, 1, 1)), (c(1, 1, 0), c(1, 0, 1)),
+                ];
+                for (a, e) in edges {
+                    if seen.insert((a.min(e), a.max(e))) {
+                        b.bar(a, e, 50.0);
+                        part.push(cell);
+                    }
+                }
+                for (a, e) in faces {
+                    if seen.insert((a.min(e), a.max(e))) {
+                        let el = b.cable(a, e, 20.0);
+                        b.prestress(el, 0.05);
+                        part.push(cell);
+                    }
+                }
+                b.bar(c(0, 0, 0), c(1, 1, 1), 50.0);
+                part.push(cell);
+            }
+        }
+    }
+    for j in 0..m {
+        for i in 0..m {
+            b.support(id(i, j, 0), "xyz");
+            b.load(id(i, j, n), [0.2, 0.05, -0.1]);
+        }
+    }
+    b.effects(Effects { unilateral_cables: unilateral, prestress: true, ..Default::default() });
+    let mut s = b.build();
+    if user_partition.is_some() {
+        s.elements.subdomain = part;
+    }
+    s
+}

@@ -1,0 +1,281 @@
+//! Decomposition and subdomain operators (issue 3), each checked against a
+//! dense reference computation on small cases.
+
+mod common;
+
+use common::*;
+use faer::linalg::solvers::DenseSolveCore;
+use faer::Mat;
+use nsdd::dd::{DdOptions, DdSolver};
+use nsdd::decomposition::Decomposition;
+use nsdd::generate::{grid, GridParams};
+use nsdd::kernels;
+use nsdd::model::Model;
+use nsdd::partition::Partition;
+use nsdd::scene::{Method, SearchDirection};
+
+fn grid_model(n: usize) -> Model {
+    let scene = grid(&GridParams { nx: n, ny: n, t0: 0.1, ..Default::default() });
+    Model::from_scene(&scene).unwrap()
+}
+
+fn multilevel(model: &Model, dec: &Decomposition) -> DdSolver {
+    DdSolver::new(
+        model,
+        dec,
+        DdOptions { coarse: true, tolerance: 1e-8, max_iterations: 1000, search_direction: SearchDirection::Auto },
+    )
+    .unwrap()
+}
+
+/// Dense `K_E` from the operator.
+fn dense_k(op: &nsdd::subdomain::SubdomainOperator) -> Mat<f64> {
+    let n = op.n();
+    let mut k = Mat::zeros(n, n);
+    let mut e = vec![0.0; n];
+    let mut y = vec![0.0; n];
+    for j in 0..n {
+        e[j] = 1.0;
+        op.apply(&e, &mut y);
+        e[j] = 0.0;
+        for i in 0..n {
+            k[(i, j)] = y[i];
+        }
+    }
+    k
+}
+
+#[test]
+fn partition_is_balanced_deterministic_and_complete() {
+    let model = grid_model(8);
+    for n in [1, 2, 3, 4, 7, 16, 64] {
+        let p = Partition::bisection(&model, n).unwrap();
+        assert_eq!(p.len(), n);
+        assert_eq!(p, Partition::bisection(&model, n).unwrap(), "not deterministic");
+        let counts: Vec<usize> = p.elements_of.iter().map(|e| e.len()).collect();
+        assert_eq!(counts.iter().sum::<usize>(), model.elements.len());
+        let (min, max) = (*counts.iter().min().unwrap(), *counts.iter().max().unwrap());
+        assert!(max - min <= 1, "unbalanced: {counts:?}");
+    }
+    assert!(Partition::bisection(&model, 0).is_err());
+    assert!(Partition::bisection(&model, model.elements.len() + 1).is_err());
+}
+
+#[test]
+fn user_partition_is_checked() {
+    let model = grid_model(2);
+    let ne = model.elements.len();
+    let mut ids = vec![0usize; ne];
+    ids[0] = 2; // subdomain 1 is empty
+    let err = Partition::from_user(&model, &ids).unwrap_err();
+    assert!(err.to_string().contains("subdomain 1"), "{err}");
+    assert!(Partition::from_user(&model, &ids[1..]).is_err());
+}
+
+#[test]
+fn quality_report_counts_cross_points() {
+    // 2×2 planar cells, one subdomain each: the centre node is shared by 4.
+    let scene = planar_grid(2, Some(&|i, j| i * 2 + j));
+    let model = Model::from_scene(&scene).unwrap();
+    let dec = Decomposition::new(&model, Partition::from_user(&model, &scene.elements.subdomain).unwrap());
+    let q = dec.quality(&model);
+    assert_eq!(q.subdomains, 4);
+    assert_eq!(q.cross_points, 1);
+    assert_eq!(q.max_node_multiplicity, 4);
+    // 4 edge-neighbour pairs plus 2 diagonal pairs meeting only at the centre.
+    assert_eq!(q.interfaces, 6);
+}
+
+#[test]
+fn kernel_basis_and_generalised_inverse() {
+    // A 2×2 cut of a small double-layer grid gives floating parts and local
+    // mechanisms (DESIGN.md §2).
+    for (n, parts) in [(4, 4), (6, 9), (8, 16)] {
+        let model = grid_model(n);
+        let dec = Decomposition::new(&model, Partition::bisection(&model, parts).unwrap());
+        let mut dd = multilevel(&model, &dec);
+        let mut singular = 0;
+        for s in 0..dd.n_subdomains() {
+            let k = dense_k(dd.operator(s));
+            let r = dd.operator(s).kernel().clone();
+            let n = k.nrows();
+            let knorm = (0..n).map(|i| k[(i, i)].abs()).fold(0.0, f64::max);
+            if r.ncols() > 0 {
+                singular += 1;
+                // R orthonormal, K R ≈ 0.
+                let rtr = r.transpose() * &r;
+                for i in 0..r.ncols() {
+                    for j in 0..r.ncols() {
+                        let e = if i == j { 1.0 } else { 0.0 };
+                        assert!((rtr[(i, j)] - e).abs() < 1e-12);
+                    }
+                }
+                let kr = &k * &r;
+                let res = kr.norm_l2() / knorm;
+                assert!(res < 1e-10, "subdomain {s}: ‖K R‖/‖K‖ = {res:e}");
+            }
+            // K y = r for r ⊥ R: a deterministic r, projected.
+            let raw = Mat::from_fn(n, 1, |i, _| ((i * 37 % 11) as f64 - 5.0) / 5.0);
+            let rhs = &raw - &r * (r.transpose() * &raw);
+            let mut y: Vec<f64> = (0..n).map(|i| rhs[(i, 0)]).collect();
+            let op = dd_operator_mut(&mut dd, s);
+            op.solve_in_place(&mut y);
+            let ky = &k * Mat::from_fn(n, 1, |i, _| y[i]);
+            let res = (&ky - &rhs).norm_l2() / rhs.norm_l2();
+            assert!(res < 1e-9, "subdomain {s}: ‖K y − r‖/‖r‖ = {res:e}");
+        }
+        assert!(singular > 0, "expected floating subdomains or mechanisms with {parts} parts");
+    }
+}
+
+fn dd_operator_mut(dd: &mut DdSolver, s: usize) -> &mut nsdd::subdomain::SubdomainOperator {
+    dd.operator_mut(s)
+}
+
+#[test]
+fn macro_basis_is_orthonormal() {
+    for (n, parts) in [(4, 4), (8, 16)] {
+        let model = grid_model(n);
+        let dec = Decomposition::new(&model, Partition::bisection(&model, parts).unwrap());
+        let dd = multilevel(&model, &dec);
+        for (i, p) in dd.macro_blocks().into_iter().enumerate() {
+            let ptp = p.transpose() * p;
+            for a in 0..p.ncols() {
+                for b in 0..p.ncols() {
+                    let e = if a == b { 1.0 } else { 0.0 };
+                    assert!((ptp[(a, b)] - e).abs() < 1e-12, "interface {i}: PᵀP != I");
+                }
+            }
+            assert!(p.ncols() <= p.nrows());
+            assert!(p.ncols() >= 1);
+        }
+    }
+}
+
+#[test]
+fn one_node_and_collinear_interfaces_keep_a_full_rank_basis() {
+    // Diagonal neighbours of a 2×2 planar partition meet at one node (one
+    // free dof per component in the plane: x and y). Their macro basis can
+    // have at most 2 columns, and must still be orthonormal.
+    let scene = planar_grid(2, Some(&|i, j| i * 2 + j));
+    let model = Model::from_scene(&scene).unwrap();
+    let dec = Decomposition::new(&model, Partition::from_user(&model, &scene.elements.subdomain).unwrap());
+    let dd = multilevel(&model, &dec);
+    let widths: Vec<(usize, usize)> = dd.macro_blocks().iter().map(|p| (p.nrows(), p.ncols())).collect();
+    assert!(widths.contains(&(2, 2)), "one-node interfaces: {widths:?}");
+    // Collinear interfaces (a straight line of nodes in the plane): 3 nodes,
+    // 6 in-plane dofs; translations, in-plane rotation and stretch along
+    // the line at least.
+    assert!(widths.iter().any(|&(r, c)| r == 4 && c <= 4), "{widths:?}");
+}
+
+#[test]
+fn coarse_operator_equals_dense_reference() {
+    let model = grid_model(4);
+    let dec = Decomposition::new(&model, Partition::bisection(&model, 4).unwrap());
+    let dd = multilevel(&model, &dec);
+    let l = dd.coarse_operator().unwrap();
+    let blocks = dd.macro_blocks();
+    let offsets: Vec<usize> = blocks
+        .iter()
+        .scan(0, |acc, p| {
+            let o = *acc;
+            *acc += p.ncols();
+            Some(o)
+        })
+        .collect();
+    let nf = l.nrows();
+    let mut l_ref = Mat::<f64>::zeros(nf, nf);
+    for s in 0..dd.n_subdomains() {
+        let op = dd.operator(s);
+        let k = dense_k(op);
+        let n = k.nrows();
+        // Generalised inverse of the fixing-dof construction, densely.
+        let fixed = op.fixing_dofs();
+        let rest: Vec<usize> = (0..n).filter(|i| !fixed.contains(i)).collect();
+        let krr = Mat::from_fn(rest.len(), rest.len(), |i, j| k[(rest[i], rest[j])]);
+        let inv = krr.partial_piv_lu().inverse();
+        let mut kplus = Mat::<f64>::zeros(n, n);
+        for (a, &i) in rest.iter().enumerate() {
+            for (b, &j) in rest.iter().enumerate() {
+                kplus[(i, j)] = inv[(a, b)];
+            }
+        }
+        // W_E = C_Eᵀ B_E P, explicitly.
+        let mut w = Mat::<f64>::zeros(n, nf);
+        for (i, it) in dec.interfaces.iter().enumerate() {
+            let (is_lo, is_hi) = (it.lo == s, it.hi == s);
+            if !is_lo && !is_hi {
+                continue;
+            }
+            let sign = if is_lo { 1.0 } else { -1.0 };
+            for j in it.start..it.end {
+                let l = if is_lo { dec.entry_lo_local[j] } else { dec.entry_hi_local[j] } as usize;
+                for q in 0..blocks[i].ncols() {
+                    w[(l, offsets[i] + q)] += sign * blocks[i][(j - it.start, q)];
+                }
+            }
+        }
+        l_ref += w.transpose() * &kplus * &w;
+    }
+    let err = (&l - &l_ref).norm_l2() / l_ref.norm_l2();
+    assert!(err < 1e-10, "‖L − L_dense‖/‖L_dense‖ = {err:e}");
+}
+
+#[test]
+fn gather_scatter_adjoint_identities() {
+    let n = 50;
+    let v: Vec<f64> = (0..n).map(|i| (i as f64 * 0.37).sin()).collect();
+    let w: Vec<f64> = (0..n).map(|i| (i as f64 * 0.11).cos()).collect();
+    let lo_idx: Vec<u32> = (0..20).map(|j| (j * 7 % n) as u32).collect();
+    let hi_idx: Vec<u32> = (0..20).map(|j| (j * 3 % n) as u32).collect();
+    let f: Vec<f64> = (0..20).map(|j| 1.0 + j as f64 * 0.25).collect();
+    // ⟨gather(v), f⟩ = ⟨v, scatter(f)⟩
+    let mut t = vec![0.0; 20];
+    kernels::gather(&mut t, &v, &lo_idx);
+    let mut s = vec![0.0; n];
+    kernels::scatter_add(&mut s, &lo_idx, &f, 1.0);
+    let lhs: f64 = t.iter().zip(&f).map(|(a, b)| a * b).sum();
+    let rhs: f64 = v.iter().zip(&s).map(|(a, b)| a * b).sum();
+    assert!((lhs - rhs).abs() < 1e-12 * lhs.abs().max(1.0));
+    // ⟨J(v, w), f⟩ = ⟨v, Bᵀ_lo f⟩ − ⟨w, Bᵀ_hi f⟩
+    let mut jmp = vec![0.0; 20];
+    kernels::jump(&mut jmp, &v, &lo_idx, &w, &hi_idx);
+    let mut sl = vec![0.0; n];
+    let mut sh = vec![0.0; n];
+    kernels::scatter_add(&mut sl, &lo_idx, &f, 1.0);
+    kernels::scatter_add(&mut sh, &hi_idx, &f, -1.0);
+    let lhs: f64 = jmp.iter().zip(&f).map(|(a, b)| a * b).sum();
+    let rhs: f64 = v.iter().zip(&sl).map(|(a, b)| a * b).sum::<f64>() + w.iter().zip(&sh).map(|(a, b)| a * b).sum::<f64>();
+    assert!((lhs - rhs).abs() < 1e-12 * lhs.abs().max(1.0));
+    // Cable projection: λ = max(0, −(e + e0)), returns Σ Δλ².
+    let mut lam = vec![0.0, 1.0, 0.5];
+    let change = kernels::cable_projection(&mut lam, &[0.5, -2.0, -0.25], &[0.0, 0.5, 0.0]);
+    assert_eq!(lam, vec![0.0, 1.5, 0.25]);
+    assert!((change - (0.25 + 0.0625)).abs() < 1e-15);
+}
+
+#[test]
+fn floating_subdomain_and_cut_mechanisms_converge_to_direct() {
+    // Each subdomain of a 2×2×2 lattice cut per cell: the upper ones float.
+    let scene = cube_lattice(2, false, Some(&|i, j, k| i + 2 * j + 4 * k));
+    assert_matches_direct(&scene, Method::Multilevel, 8, 1e-8);
+    let scene = cube_lattice(2, true, Some(&|i, j, k| i + 2 * j + 4 * k));
+    assert_matches_direct(&scene, Method::Multilevel, 8, 1e-8);
+}
+
+#[test]
+fn cross_point_of_eight_subdomains_in_3d() {
+    let scene = cube_lattice(2, false, Some(&|i, j, k| i + 2 * j + 4 * k));
+    let model = Model::from_scene(&scene).unwrap();
+    let dec = Decomposition::new(&model, Partition::from_user(&model, &scene.elements.subdomain).unwrap());
+    assert_eq!(dec.quality(&model).max_node_multiplicity, 8);
+}
+
+#[test]
+fn cross_point_of_four_subdomains_in_2d() {
+    let scene = planar_grid(2, Some(&|i, j| i * 2 + j));
+    assert_matches_direct(&scene, Method::Multilevel, 4, 1e-8);
+    let scene = planar_grid(4, Some(&|i, j| (i / 2) * 2 + j / 2));
+    assert_matches_direct(&scene, Method::Multilevel, 4, 1e-8);
+}
