@@ -192,6 +192,9 @@ struct SubState {
     // per-iteration reductions
     v_norm2: f64,
     dlambda2: f64,
+    dforce2: f64,
+    /// Stiffness of each cable.
+    kc: Vec<f64>,
 }
 
 struct IfaceState {
@@ -355,11 +358,14 @@ impl DdSolver {
                 alpha: vec![0.0; r],
                 rt_r: vec![0.0; r],
                 e0: cables.iter().map(|c| c.e0).collect(),
+                kc: cables.iter().map(|c| c.k).collect(),
                 cables,
                 lambda: vec![0.0; nc],
                 elong: vec![0.0; nc],
                 v_norm2: 0.0,
                 dlambda2: 0.0,
+                dforce2: 0.0,
+
                 op,
             });
             alpha_off += r;
@@ -670,7 +676,7 @@ impl DdSolver {
             if has_cables {
                 self.subs.par_iter_mut().for_each(|s| {
                     cable_elongations(s);
-                    s.dlambda2 = kernels::cable_projection(&mut s.lambda, &s.elong, &s.e0);
+                    (s.dlambda2, s.dforce2) = kernels::cable_projection(&mut s.lambda, &s.elong, &s.e0, &s.kc);
                 });
             }
             // Global step and coarse step.
@@ -681,7 +687,13 @@ impl DdSolver {
             let jump = self.ifaces.iter().map(|i| i.jump_norm2).sum::<f64>().sqrt() / vn;
             let force = self.ifaces.iter().map(|i| i.force_norm2).sum::<f64>().sqrt() / b_norm.max(f64::MIN_POSITIVE);
             let jump = jump.max(force);
-            let cable = if has_cables { Some(self.subs.iter().map(|s| s.dlambda2).sum::<f64>().sqrt() / vn) } else { None };
+            let cable = if has_cables {
+                let length = self.subs.iter().map(|s| s.dlambda2).sum::<f64>().sqrt() / vn;
+                let force = self.subs.iter().map(|s| s.dforce2).sum::<f64>().sqrt() / b_norm.max(f64::MIN_POSITIVE);
+                Some(length.max(force))
+            } else {
+                None
+            };
             let indicator = jump.max(cable.unwrap_or(0.0));
             history.push(HistoryEntry {
                 iteration: iterations,

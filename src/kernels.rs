@@ -40,16 +40,20 @@ pub fn force_update(force: &mut [f64], d: f64, g_lo: &[f64], lo_idx: &[u32], g_h
 }
 
 /// Per-cable local stage with `W^D = k_c`: `λ ← max(0, −(e + e0))`.
-/// Returns `Σ (Δλ)²`.
+/// Returns `(Σ Δλ², Σ (k Δλ)²)`: the change as a length and as the force
+/// it moves.
 #[inline]
-pub fn cable_projection(lambda: &mut [f64], elongation: &[f64], e0: &[f64]) -> f64 {
+pub fn cable_projection(lambda: &mut [f64], elongation: &[f64], e0: &[f64], k: &[f64]) -> (f64, f64) {
     let mut change = 0.0;
-    for ((l, &e), &p) in lambda.iter_mut().zip(elongation).zip(e0) {
+    let mut force = 0.0;
+    for (((l, &e), &p), &kc) in lambda.iter_mut().zip(elongation).zip(e0).zip(k) {
         let new = (-(e + p)).max(0.0);
-        change += (new - *l) * (new - *l);
+        let d = new - *l;
+        change += d * d;
+        force += (kc * d) * (kc * d);
         *l = new;
     }
-    change
+    (change, force)
 }
 
 /// Sum of squares.

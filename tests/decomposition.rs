@@ -250,9 +250,10 @@ fn gather_scatter_adjoint_identities() {
     assert!((lhs - rhs).abs() < 1e-12 * lhs.abs().max(1.0));
     // Cable projection: λ = max(0, −(e + e0)), returns Σ Δλ².
     let mut lam = vec![0.0, 1.0, 0.5];
-    let change = kernels::cable_projection(&mut lam, &[0.5, -2.0, -0.25], &[0.0, 0.5, 0.0]);
+    let (change, force) = kernels::cable_projection(&mut lam, &[0.5, -2.0, -0.25], &[0.0, 0.5, 0.0], &[1.0, 2.0, 4.0]);
     assert_eq!(lam, vec![0.0, 1.5, 0.25]);
     assert!((change - (0.25 + 0.0625)).abs() < 1e-15);
+    assert!((force - 2.0).abs() < 1e-15);
 }
 
 #[test]
