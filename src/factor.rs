@@ -61,6 +61,11 @@ impl SparseCholesky {
     /// Factors the SPD matrix whose lower triangle is `lower`.
     /// Scratch is sized for solves of up to `max_rhs` columns at once.
     pub fn factor(lower: &SparseColMat<usize, f64>, max_rhs: usize) -> Result<Self, FactorError> {
+        Self::factor_checked(lower, max_rhs, PIVOT_RATIO)
+    }
+
+    /// [`SparseCholesky::factor`] with a caller-chosen pivot ratio threshold.
+    pub fn factor_checked(lower: &SparseColMat<usize, f64>, max_rhs: usize, pivot_ratio: f64) -> Result<Self, FactorError> {
         let n = lower.nrows();
         let symbolic = factorize_symbolic_cholesky(
             lower.symbolic(),
@@ -94,12 +99,12 @@ impl SparseCholesky {
         let req = symbolic.solve_in_place_scratch::<f64>(max_rhs, par);
         let scratch = MemBuffer::try_new(req).map_err(|_| FactorError::Internal("out of memory".into()))?;
         let this = SparseCholesky { n, symbolic, l_values, scratch, scratch_cols: max_rhs };
-        this.check_pivots(lower, &perm_fwd)?;
+        this.check_pivots(lower, &perm_fwd, pivot_ratio)?;
         Ok(this)
     }
 
     /// Compares each pivot `L_jj²` with `A_jj` (both in permuted order).
-    fn check_pivots(&self, lower: &SparseColMat<usize, f64>, perm_fwd: &[usize]) -> Result<(), FactorError> {
+    fn check_pivots(&self, lower: &SparseColMat<usize, f64>, perm_fwd: &[usize], pivot_ratio: f64) -> Result<(), FactorError> {
         let mut adiag = vec![0.0; self.n];
         let a = lower.as_ref();
         for j in 0..self.n {
@@ -117,7 +122,7 @@ impl SparseCholesky {
             // largest one: an all-zero row is a mechanism too.
             let ad = adiag[orig].max(f64::MIN_POSITIVE);
             let ratio = (l * l) / ad;
-            if !(ratio >= PIVOT_RATIO) || adiag[orig] <= PIVOT_RATIO * scale * 1e-4 {
+            if !(ratio >= pivot_ratio) || adiag[orig] <= pivot_ratio * scale * 1e-4 {
                 return Err(FactorError::Pivot { dof: orig, ratio, negative: false });
             }
         }
@@ -219,8 +224,8 @@ pub struct PivotScan {
 }
 
 /// Scans the pivots of the matrix whose lower triangle is `lower`. A pivot is
-/// negligible below `PIVOT_RATIO` times the largest diagonal entry.
-pub fn scan_pivots(lower: &SparseColMat<usize, f64>) -> Result<PivotScan, FactorError> {
+/// negligible below `ratio` times the largest diagonal entry.
+pub fn scan_pivots(lower: &SparseColMat<usize, f64>, ratio: f64) -> Result<PivotScan, FactorError> {
     use faer::linalg::cholesky::ldlt::factor::LdltRegularization;
     let n = lower.nrows();
     let a = lower.as_ref();
@@ -235,7 +240,7 @@ pub fn scan_pivots(lower: &SparseColMat<usize, f64>) -> Result<PivotScan, Factor
     let scale = adiag.iter().fold(0.0f64, |m, v| m.max(v.abs())).max(f64::MIN_POSITIVE);
     // A distinctive value, so regularised pivots can be recognised exactly.
     let delta = scale * (1.0 + 1.0 / 1024.0);
-    let eps = PIVOT_RATIO * scale;
+    let eps = ratio * scale;
     let symbolic = factorize_symbolic_cholesky(
         lower.symbolic(),
         Side::Lower,

@@ -22,6 +22,12 @@ use faer::Mat;
 /// subdomain is mostly mechanism and the partition is at fault.
 pub const MAX_KERNEL_DIM: usize = 256;
 
+/// Pivot ratio below which a subdomain pivot counts as zero. Larger than the
+/// whole-structure threshold: round-off on mechanisms of large subdomains
+/// reaches ~1e-12 of the diagonal, while genuine soft pivots (stiffness
+/// contrast 1e8) stay near 1e-8.
+pub const SUBDOMAIN_PIVOT_RATIO: f64 = 1e-10;
+
 /// Relative size of `‖K r‖ / (‖K‖ ‖r‖)` above which a computed kernel
 /// vector is rejected (indefinite or badly conditioned subdomain).
 pub const KERNEL_TOL: f64 = 1e-8;
@@ -112,7 +118,7 @@ impl SubdomainOperator {
         name: &dyn Fn(usize) -> String,
     ) -> Result<SubdomainOperator> {
         let n = stiffness.nrows();
-        match SparseCholesky::factor(&stiffness, max_rhs) {
+        match SparseCholesky::factor_checked(&stiffness, max_rhs, SUBDOMAIN_PIVOT_RATIO) {
             Ok(chol) => {
                 return Ok(SubdomainOperator { id, stiffness, chol, fixing: Vec::new(), kernel: Mat::zeros(n, 0) })
             }
@@ -136,7 +142,7 @@ impl SubdomainOperator {
                 name(dof)
             ),
         };
-        let scan = scan_pivots(&stiffness).map_err(|e| Error::Numerical(format!("subdomain {id}: {e:?}")))?;
+        let scan = scan_pivots(&stiffness, SUBDOMAIN_PIVOT_RATIO).map_err(|e| Error::Numerical(format!("subdomain {id}: {e:?}")))?;
         if let Some(&(dof, ratio)) = scan.negative.iter().find(|(_, r)| *r < -1e-10) {
             return Err(indefinite(dof, format!("indefinite (pivot ratio {ratio:.2e})")));
         }
@@ -151,11 +157,11 @@ impl SubdomainOperator {
         // Refactor with F decoupled; a late pivot failure adds to F.
         let (regular, chol) = loop {
             let regular = decouple(&stiffness, &fixing, scale);
-            match SparseCholesky::factor(&regular, max_rhs.max(fixing.len())) {
+            match SparseCholesky::factor_checked(&regular, max_rhs.max(fixing.len()), SUBDOMAIN_PIVOT_RATIO) {
                 Ok(c) => break (regular, c),
-                Err(FactorError::Pivot { dof, negative: false, .. })
-                    if !fixing.contains(&dof) && fixing.len() < MAX_KERNEL_DIM =>
-                {
+                // A round-off pivot the scan kept: fix it too; the kernel
+                // check below rejects it if it was not a mechanism.
+                Err(FactorError::Pivot { dof, .. }) if !fixing.contains(&dof) && fixing.len() < MAX_KERNEL_DIM => {
                     fixing.push(dof);
                     fixing.sort_unstable();
                 }
