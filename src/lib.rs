@@ -9,6 +9,7 @@ pub mod kernels;
 pub mod generate;
 pub mod model;
 pub mod partition;
+pub mod report;
 pub mod result;
 pub mod scene;
 pub mod solve;

@@ -1,1 +1,576 @@
-fn main(){}
+//! The `nsdd` command line: solve a scene, generate scenes, inspect a
+//! partition, and run the accuracy and scaling studies. The computations
+//! live in `nsdd::report`; this file parses arguments, draws progress bars
+//! (only when stderr is a terminal) and writes files.
+
+use std::collections::BTreeMap;
+use std::io::IsTerminal;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::time::{Duration, Instant};
+
+use clap::{Args, Parser, Subcommand, ValueEnum};
+use indicatif::{ProgressBar, ProgressStyle};
+
+use nsdd::error::{Error, Result};
+use nsdd::generate;
+use nsdd::model::Model;
+use nsdd::report::{self, AccuracyOptions, Event, ScalingOptions};
+use nsdd::scene::{Method, Scene, SearchDirection};
+use nsdd::solve::{solve_with_progress, SolveOptions};
+use nsdd::vtk;
+
+#[derive(Parser)]
+#[command(
+    name = "nsdd",
+    version,
+    about = "Static equilibrium of trusses and tensegrity grids with slack cables: direct and multilevel domain decomposition solvers",
+    after_help = "Exit status: 0 success; 2 bad input (parse, i/o, invalid field); 3 structure or decomposition the method cannot solve (mechanism, indefinite subdomain, method not applicable); 4 divergence or numerical failure; 5 solved but not converged to the tolerance; 1 other."
+)]
+struct Cli {
+    /// Number of worker threads (rayon global pool; default: all cores)
+    #[arg(long, global = true, value_name = "N")]
+    threads: Option<usize>,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Solve a scene (TOML or JSON); flags override the scene's [solver]
+    Solve(SolveArgs),
+    /// Generate a scene: nsdd gen KIND key=value ... --out scene.toml
+    #[command(after_help = gen_help())]
+    Gen(GenArgs),
+    /// Partition report: interface quality and singular subdomains
+    Partition(PartitionArgs),
+    /// Error against time to accuracy of every method, against the direct solution
+    Accuracy(AccuracyArgs),
+    /// Iterations and time against subdomains (strong) and size (weak)
+    Scaling(ScalingArgs),
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum MethodArg {
+    Direct,
+    Monolevel,
+    Multilevel,
+}
+
+impl From<MethodArg> for Method {
+    fn from(m: MethodArg) -> Method {
+        match m {
+            MethodArg::Direct => Method::Direct,
+            MethodArg::Monolevel => Method::Monolevel,
+            MethodArg::Multilevel => Method::Multilevel,
+        }
+    }
+}
+
+fn parse_d(s: &str) -> std::result::Result<SearchDirection, String> {
+    let d: SearchDirection = s.parse()?;
+    match d {
+        SearchDirection::Value(v) if !(v > 0.0 && v.is_finite()) => Err(format!("must be positive, got {v}")),
+        _ => Ok(d),
+    }
+}
+
+#[derive(Args)]
+struct SolveArgs {
+    /// Scene file (.toml, or .json)
+    scene: PathBuf,
+    /// Solution method
+    #[arg(long, value_enum)]
+    method: Option<MethodArg>,
+    /// Number of subdomains (iterative methods)
+    #[arg(long, value_name = "N")]
+    subdomains: Option<usize>,
+    /// Relative tolerance on the convergence indicator
+    #[arg(long, value_name = "T")]
+    tolerance: Option<f64>,
+    /// Iteration limit
+    #[arg(long, value_name = "K")]
+    max_iterations: Option<usize>,
+    /// Search direction d of the local stage: a positive number or "auto"
+    #[arg(long, value_name = "D|auto", value_parser = parse_d)]
+    search_direction: Option<SearchDirection>,
+    /// Write the result JSON here (only after a successful solve)
+    #[arg(long, value_name = "FILE")]
+    out: Option<PathBuf>,
+    /// Write a ParaView .vtu here (with a load path: also one .vtu per step and a .pvd series)
+    #[arg(long, value_name = "FILE")]
+    vtk: Option<PathBuf>,
+}
+
+#[derive(Args)]
+struct GenArgs {
+    /// Generator kind (see below)
+    kind: String,
+    /// Parameters as key=value
+    #[arg(value_name = "KEY=VALUE")]
+    params: Vec<String>,
+    /// Output scene file: .json writes JSON, anything else TOML (default: TOML on stdout)
+    #[arg(long, value_name = "FILE")]
+    out: Option<PathBuf>,
+}
+
+#[derive(Args)]
+struct PartitionArgs {
+    /// Scene file
+    scene: PathBuf,
+    /// Number of subdomains (default: the scene's [solver] subdomains)
+    #[arg(long, value_name = "N")]
+    subdomains: Option<usize>,
+    /// Print the report as JSON
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(Args)]
+struct AccuracyArgs {
+    /// Scene file
+    scene: PathBuf,
+    /// Output directory (accuracy.csv, accuracy.svg, history-<method>.csv/.svg)
+    #[arg(long, value_name = "DIR")]
+    out: PathBuf,
+    /// Subdomains of the iterative methods (default: the scene's, or 4 when it asks for 1)
+    #[arg(long, value_name = "N")]
+    subdomains: Option<usize>,
+    /// Tolerances to sweep, comma separated
+    #[arg(
+        long,
+        value_name = "T,...",
+        value_delimiter = ',',
+        default_value = "1e-2,1e-3,1e-4,1e-5,1e-6,1e-7,1e-8,1e-9,1e-10"
+    )]
+    tolerances: Vec<f64>,
+    /// Iteration limit (default: the scene's)
+    #[arg(long, value_name = "K")]
+    max_iterations: Option<usize>,
+    /// Search direction d: a positive number or "auto" (default: the scene's)
+    #[arg(long, value_name = "D|auto", value_parser = parse_d)]
+    search_direction: Option<SearchDirection>,
+    /// Number of true-error samples along each convergence history (0: none).
+    /// Each sample re-runs setup + the first k iterations (k geometric).
+    #[arg(long, value_name = "N", default_value_t = 24)]
+    samples: usize,
+}
+
+#[derive(Args)]
+struct ScalingArgs {
+    /// Generator kind of the scenes
+    #[arg(long, default_value = "grid")]
+    kind: String,
+    /// Sizes (nx = ny = size; nz for a tower), comma separated
+    #[arg(long, value_name = "N,...", value_delimiter = ',', default_value = "8,16,32")]
+    sizes: Vec<usize>,
+    /// Subdomain counts, comma separated; the weak study pairs sizes[i] with subdomains[i]
+    #[arg(long, value_name = "N,...", value_delimiter = ',', default_value = "4,16,64")]
+    subdomains: Vec<usize>,
+    /// Size of the strong-scaling study (default: the largest size)
+    #[arg(long, value_name = "SIZE")]
+    strong_size: Option<usize>,
+    /// Tolerance of the iterative methods
+    #[arg(long, value_name = "T", default_value = "1e-6")]
+    tolerance: f64,
+    /// Iteration limit
+    #[arg(long, value_name = "K", default_value_t = 20000)]
+    max_iterations: usize,
+    /// Search direction d: a positive number or "auto"
+    #[arg(long, value_name = "D|auto", value_parser = parse_d, default_value = "auto")]
+    search_direction: SearchDirection,
+    /// Extra generator parameter key=value (repeatable)
+    #[arg(long = "param", value_name = "KEY=VALUE")]
+    params: Vec<String>,
+    /// Output directory (scaling.csv, scaling.svg)
+    #[arg(long, value_name = "DIR")]
+    out: PathBuf,
+}
+
+fn gen_help() -> String {
+    let mut s = String::from("Kinds and parameters (defaults in parentheses; every kind also takes name=...):\n");
+    for kind in generate::KINDS {
+        let defaults = match *kind {
+            "grid" => serde_json::to_value(generate::GridParams::default()),
+            "tensegrity" => serde_json::to_value(generate::TensegrityParams::default()),
+            _ => serde_json::to_value(generate::TowerParams::default()),
+        }
+        .unwrap_or_default();
+        let keys = generate::parameters(kind).unwrap_or(&[]);
+        let list: Vec<String> = keys
+            .iter()
+            .map(|k| match defaults.get(*k) {
+                Some(v) => format!("{k} ({v})"),
+                None => k.to_string(),
+            })
+            .collect();
+        s.push_str(&format!("  {kind}: {}\n", list.join(", ")));
+    }
+    s.push_str("\nExample: nsdd gen grid nx=8 ny=8 t0=0.1 --out grid.toml");
+    s
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    if let Some(n) = cli.threads {
+        if let Err(e) = rayon::ThreadPoolBuilder::new().num_threads(n).build_global() {
+            eprintln!("error: cannot start {n} threads: {e}");
+            return ExitCode::from(1);
+        }
+    }
+    let outcome = match cli.command {
+        Command::Solve(a) => cmd_solve(a),
+        Command::Gen(a) => cmd_gen(a),
+        Command::Partition(a) => cmd_partition(a),
+        Command::Accuracy(a) => cmd_accuracy(a),
+        Command::Scaling(a) => cmd_scaling(a),
+    };
+    match outcome {
+        Ok(code) => ExitCode::from(code as u8),
+        Err(e) => {
+            eprintln!("error: {e}");
+            ExitCode::from(report::exit_code(&e) as u8)
+        }
+    }
+}
+
+// ---------------------------------------------------------------------------
+// Progress (only on a terminal)
+// ---------------------------------------------------------------------------
+
+fn on_terminal() -> bool {
+    std::io::stderr().is_terminal()
+}
+
+/// Fraction of the way from indicator 1 down to `tol` (log scale).
+fn progress_fraction(indicator: f64, tol: f64) -> f64 {
+    if indicator.is_nan() || indicator <= 0.0 {
+        return 1.0;
+    }
+    if indicator >= 1.0 || !(tol > 0.0 && tol < 1.0) {
+        return 0.0;
+    }
+    (indicator.ln() / tol.ln()).clamp(0.0, 1.0)
+}
+
+/// Progress bar of one solve: how far the indicator is towards the tolerance.
+struct SolveBar {
+    bar: ProgressBar,
+    tol: f64,
+    last: Instant,
+}
+
+impl SolveBar {
+    fn new(tol: f64) -> Option<SolveBar> {
+        if !on_terminal() {
+            return None;
+        }
+        let bar = ProgressBar::new(1000);
+        bar.set_style(
+            ProgressStyle::with_template("{spinner} {elapsed:>4} {bar:25} {msg}")
+                .expect("valid template")
+                .progress_chars("=> "),
+        );
+        bar.set_message("setting up");
+        bar.enable_steady_tick(Duration::from_millis(100));
+        Some(SolveBar {
+            bar,
+            tol,
+            last: Instant::now() - Duration::from_secs(1),
+        })
+    }
+
+    fn update(&mut self, iteration: usize, indicator: f64) {
+        if self.last.elapsed() < Duration::from_millis(50) {
+            return;
+        }
+        self.last = Instant::now();
+        self.bar
+            .set_position((progress_fraction(indicator, self.tol) * 1000.0) as u64);
+        self.bar.set_message(format!(
+            "iter {iteration}  indicator {indicator:.2e} -> {:.0e}",
+            self.tol
+        ));
+    }
+}
+
+/// Progress bar of a study: runs done, and the current run's iteration.
+struct StudyBar {
+    bar: ProgressBar,
+    label: String,
+    last: Instant,
+}
+
+impl StudyBar {
+    fn new() -> Option<StudyBar> {
+        if !on_terminal() {
+            return None;
+        }
+        let bar = ProgressBar::new(1);
+        bar.set_style(
+            ProgressStyle::with_template("{spinner} {elapsed:>4} {bar:20} {pos}/{len} {msg}")
+                .expect("valid template")
+                .progress_chars("=> "),
+        );
+        bar.enable_steady_tick(Duration::from_millis(100));
+        Some(StudyBar {
+            bar,
+            label: String::new(),
+            last: Instant::now() - Duration::from_secs(1),
+        })
+    }
+
+    fn event(&mut self, e: Event<'_>) {
+        match e {
+            Event::Start { label, run, runs } => {
+                self.label = label.to_string();
+                if runs > 0 {
+                    self.bar.set_length(runs as u64);
+                    self.bar.set_position(run as u64);
+                }
+                self.bar.set_message(self.label.clone());
+            }
+            Event::Iteration { iteration, indicator } => {
+                if self.last.elapsed() < Duration::from_millis(50) {
+                    return;
+                }
+                self.last = Instant::now();
+                self.bar
+                    .set_message(format!("{}: iter {iteration}, ind {indicator:.1e}", self.label));
+            }
+        }
+    }
+}
+
+// ---------------------------------------------------------------------------
+// Commands
+// ---------------------------------------------------------------------------
+
+fn write_file(path: &Path, text: &str) -> Result<()> {
+    std::fs::write(path, text).map_err(|e| Error::Io(format!("{}: {e}", path.display())))
+}
+
+fn create_dir(dir: &Path) -> Result<()> {
+    std::fs::create_dir_all(dir).map_err(|e| Error::Io(format!("{}: {e}", dir.display())))
+}
+
+fn cmd_solve(a: SolveArgs) -> Result<i32> {
+    let scene = Scene::load(&a.scene)?;
+    let mut opts = SolveOptions::from_scene(&scene);
+    if let Some(m) = a.method {
+        opts.method = m.into();
+    }
+    if let Some(n) = a.subdomains {
+        opts.subdomains = n;
+    }
+    if let Some(t) = a.tolerance {
+        if !(t > 0.0 && t.is_finite()) {
+            return Err(Error::input(
+                "--tolerance",
+                None,
+                format!("must be a positive number, got {t}"),
+            ));
+        }
+        opts.tolerance = t;
+    }
+    if let Some(k) = a.max_iterations {
+        opts.max_iterations = k;
+    }
+    if let Some(d) = a.search_direction {
+        opts.search_direction = d;
+    }
+
+    let mut bar = if opts.method == Method::Direct {
+        None
+    } else {
+        SolveBar::new(opts.tolerance)
+    };
+    let result = match bar.as_mut() {
+        Some(b) => {
+            let mut cb = |it: usize, ind: f64| b.update(it, ind);
+            solve_with_progress(&scene, &opts, Some(&mut cb))
+        }
+        None => solve_with_progress(&scene, &opts, None),
+    };
+    if let Some(b) = bar {
+        b.bar.finish_and_clear();
+    }
+    let result = result?;
+
+    let mut wrote = Vec::new();
+    if let Some(path) = &a.vtk {
+        let model = Model::from_scene(&scene)?;
+        let sub = (!result.element_subdomain.is_empty()).then_some(result.element_subdomain.as_slice());
+        if !result.steps.is_empty() {
+            let dir = path.parent().unwrap_or(Path::new(""));
+            let stem = path.file_stem().and_then(|s| s.to_str()).unwrap_or("result");
+            let mut series = Vec::new();
+            for (k, st) in result.steps.iter().enumerate() {
+                let name = format!("{stem}-step{:03}.vtu", k + 1);
+                vtk::write_vtu(dir.join(&name), &model, &st.displacements, &st.tensions, &st.slack, sub)?;
+                series.push((st.load_factor, name));
+            }
+            let pvd = path.with_extension("pvd");
+            vtk::write_pvd_series(&pvd, &series)?;
+            wrote.push(format!("{} ({} steps)", pvd.display(), series.len()));
+        }
+        vtk::write_vtu(
+            path,
+            &model,
+            &result.displacements,
+            &result.tensions,
+            &result.slack,
+            sub,
+        )?;
+        wrote.push(path.display().to_string());
+    }
+    if let Some(path) = &a.out {
+        write_file(path, &result.to_json())?;
+        wrote.push(path.display().to_string());
+    }
+    print!("{}", report::summary(&scene, &result));
+    for w in wrote {
+        println!("wrote       {w}");
+    }
+    if !result.converged {
+        eprintln!(
+            "error: not converged: {} iterations without reaching the tolerance {:e} (result written anyway)",
+            result.iterations, opts.tolerance
+        );
+        return Ok(report::EXIT_NOT_CONVERGED);
+    }
+    Ok(0)
+}
+
+fn cmd_gen(a: GenArgs) -> Result<i32> {
+    let mut args = BTreeMap::new();
+    for p in &a.params {
+        let Some((k, v)) = p.split_once('=') else {
+            return Err(Error::input(p.as_str(), None, "expected key=value"));
+        };
+        if args.insert(k.trim().to_string(), v.trim().to_string()).is_some() {
+            return Err(Error::input(k.trim(), None, "given twice"));
+        }
+    }
+    let scene = generate::by_name(&a.kind, &args)?;
+    match &a.out {
+        Some(path) => {
+            let text = if path.extension().and_then(|e| e.to_str()) == Some("json") {
+                scene.to_json_string()?
+            } else {
+                scene.to_toml_string()?
+            };
+            write_file(path, &text)?;
+            println!(
+                "wrote {} ({} nodes, {} elements)",
+                path.display(),
+                scene.nodes.x.len(),
+                scene.elements.a.len()
+            );
+        }
+        None => print!("{}", scene.to_toml_string()?),
+    }
+    Ok(0)
+}
+
+fn cmd_partition(a: PartitionArgs) -> Result<i32> {
+    let scene = Scene::load(&a.scene)?;
+    let n = a.subdomains.unwrap_or(scene.solver.subdomains);
+    let r = report::partition_report(&scene, n)?;
+    if a.json {
+        println!(
+            "{}",
+            serde_json::to_string_pretty(&r).map_err(|e| Error::Io(e.to_string()))?
+        );
+    } else {
+        print!("{}", r.text());
+    }
+    Ok(0)
+}
+
+fn cmd_accuracy(a: AccuracyArgs) -> Result<i32> {
+    let scene = Scene::load(&a.scene)?;
+    let mut opts = AccuracyOptions::from_scene(&scene);
+    if let Some(n) = a.subdomains {
+        opts.subdomains = n;
+    }
+    opts.tolerances = a.tolerances.clone();
+    if let Some(k) = a.max_iterations {
+        opts.max_iterations = k;
+    }
+    if let Some(d) = a.search_direction {
+        opts.search_direction = d;
+    }
+    opts.history = a.samples > 0;
+    opts.history_samples = a.samples;
+    create_dir(&a.out)?;
+
+    let mut bar = StudyBar::new();
+    let rep = match bar.as_mut() {
+        Some(b) => {
+            let mut cb = |e: Event<'_>| b.event(e);
+            report::accuracy(&scene, &opts, Some(&mut cb))
+        }
+        None => report::accuracy(&scene, &opts, None),
+    };
+    if let Some(b) = bar {
+        b.bar.finish_and_clear();
+    }
+    let rep = rep?;
+    let mut files = vec![a.out.join("accuracy.csv"), a.out.join("accuracy.svg")];
+    write_file(&files[0], &rep.csv())?;
+    write_file(&files[1], &report::accuracy_svg(&rep)?)?;
+    for h in &rep.histories {
+        let csv = a.out.join(format!("history-{}.csv", h.method));
+        let svg = a.out.join(format!("history-{}.svg", h.method));
+        write_file(&csv, &h.csv())?;
+        write_file(&svg, &report::history_svg(h)?)?;
+        files.extend([csv, svg]);
+    }
+    print!("{}", rep.text());
+    for f in files {
+        println!("wrote {}", f.display());
+    }
+    Ok(0)
+}
+
+fn cmd_scaling(a: ScalingArgs) -> Result<i32> {
+    let mut params = BTreeMap::new();
+    for p in &a.params {
+        let Some((k, v)) = p.split_once('=') else {
+            return Err(Error::input("--param", None, format!("expected key=value, got '{p}'")));
+        };
+        params.insert(k.trim().to_string(), v.trim().to_string());
+    }
+    let opts = ScalingOptions {
+        kind: a.kind,
+        sizes: a.sizes,
+        subdomains: a.subdomains,
+        tolerance: a.tolerance,
+        max_iterations: a.max_iterations,
+        search_direction: a.search_direction,
+        strong_size: a.strong_size,
+        params,
+    };
+    create_dir(&a.out)?;
+    let mut bar = StudyBar::new();
+    let rep = match bar.as_mut() {
+        Some(b) => {
+            let mut cb = |e: Event<'_>| b.event(e);
+            report::scaling(&opts, Some(&mut cb))
+        }
+        None => report::scaling(&opts, None),
+    };
+    if let Some(b) = bar {
+        b.bar.finish_and_clear();
+    }
+    let rep = rep?;
+    let csv = a.out.join("scaling.csv");
+    let svg = a.out.join("scaling.svg");
+    write_file(&csv, &rep.csv())?;
+    write_file(&svg, &report::scaling_svg(&rep)?)?;
+    print!("{}", rep.text());
+    println!("wrote {}", csv.display());
+    println!("wrote {}", svg.display());
+    Ok(0)
+}

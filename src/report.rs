@@ -1,0 +1,1329 @@
+//! The computations behind the `nsdd` command line, kept out of `main.rs` so
+//! that tests can call them: the human summary of a solve, exit codes, the
+//! partition report, the accuracy study (error against time to accuracy,
+//! against the direct solution) and the scaling study, with their CSV and
+//! SVG output.
+//!
+//! Every study runs through the public facade ([`crate::solve`]), so the
+//! times it reports are what a user of `nsdd solve` gets: setup (model,
+//! partition, factorizations, coarse problem) plus solve.
+
+use std::collections::BTreeMap;
+use std::fmt::Write as _;
+
+use plotters::prelude::*;
+use serde::Serialize;
+
+use crate::decomposition::QualityReport;
+use crate::error::{Error, Result};
+use crate::model::Model;
+use crate::result::SolveResult;
+use crate::scene::{ElementKind, Method, Scene, SearchDirection};
+use crate::solve::{decompose, solve_with_progress, SolveOptions};
+use crate::subdomain::SubdomainOperator;
+
+// ---------------------------------------------------------------------------
+// Exit codes and summary
+// ---------------------------------------------------------------------------
+
+/// Exit status of the command line for an error: 2 bad input (parse, I/O,
+/// invalid field), 3 a structure or decomposition the method cannot solve,
+/// 4 divergence or numerical failure.
+pub fn exit_code(e: &Error) -> i32 {
+    match e {
+        Error::InvalidInput { .. } | Error::Parse(_) | Error::Io(_) => 2,
+        Error::Mechanism(_) | Error::IndefiniteSubdomain { .. } | Error::MethodNotApplicable(_) => 3,
+        Error::Diverged { .. } | Error::Numerical(_) => 4,
+    }
+}
+
+/// Exit status of a solve that ran but did not reach its tolerance.
+pub const EXIT_NOT_CONVERGED: i32 = 5;
+
+/// Largest displacement magnitude and its node (None without nodes).
+pub fn max_displacement(displacements: &[[f64; 3]]) -> Option<(usize, f64)> {
+    displacements
+        .iter()
+        .map(|d| (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt())
+        .enumerate()
+        .fold(None, |best, (i, m)| match best {
+            Some((_, b)) if b >= m => best,
+            _ => Some((i, m)),
+        })
+}
+
+/// The short human summary `nsdd solve` prints.
+pub fn summary(scene: &Scene, r: &SolveResult) -> String {
+    let mut s = String::new();
+    let n_cables = scene.elements.kind.iter().filter(|k| **k == ElementKind::Cable).count();
+    let n_slack = r.slack.iter().filter(|&&b| b).count();
+    let _ = writeln!(
+        s,
+        "scene       {}",
+        if r.scene.is_empty() { "(unnamed)" } else { &r.scene }
+    );
+    let mut method = r.method.clone();
+    if r.method != "direct" {
+        let _ = write!(
+            method,
+            " ({} subdomain{}",
+            r.subdomains,
+            if r.subdomains == 1 { "" } else { "s" }
+        );
+        if let Some(d) = r.search_direction {
+            let _ = write!(method, ", d = {d:.3e}");
+        }
+        method.push(')');
+    }
+    let _ = writeln!(s, "method      {method}");
+    let _ = writeln!(
+        s,
+        "effects     {}",
+        if r.effects.is_empty() {
+            "none".into()
+        } else {
+            r.effects.join(", ")
+        }
+    );
+    let _ = writeln!(s, "stages      {}", r.stages.join(", "));
+    let last = r.history.last().map(|h| h.indicator);
+    let _ = write!(
+        s,
+        "converged   {} ({} iteration{}",
+        if r.converged { "yes" } else { "NO" },
+        r.iterations,
+        if r.iterations == 1 { "" } else { "s" }
+    );
+    if let (Some(ind), true) = (last, r.method != "direct") {
+        let _ = write!(s, ", final indicator {ind:.3e}");
+    }
+    let _ = writeln!(s, ")");
+    let _ = writeln!(
+        s,
+        "time        setup {:.4} s, solve {:.4} s, total {:.4} s",
+        r.timings_s.setup,
+        r.timings_s.solve,
+        r.timings_s.setup + r.timings_s.solve
+    );
+    match max_displacement(&r.displacements) {
+        Some((n, m)) => {
+            let _ = writeln!(s, "max |u|     {m:.6e} (node {n})");
+        }
+        None => {
+            let _ = writeln!(s, "max |u|     -");
+        }
+    }
+    let _ = writeln!(
+        s,
+        "slack       {n_slack} of {n_cables} cable{}",
+        if n_cables == 1 { "" } else { "s" }
+    );
+    if !r.steps.is_empty() {
+        let _ = writeln!(
+            s,
+            "load path   {} steps, all converged: {}",
+            r.steps.len(),
+            r.steps.iter().all(|c| c.converged)
+        );
+    }
+    if !r.load_cases.is_empty() {
+        let _ = writeln!(
+            s,
+            "load cases  {} more, all converged: {}",
+            r.load_cases.len(),
+            r.load_cases.iter().all(|c| c.converged)
+        );
+    }
+    for n in &r.notes {
+        let _ = writeln!(s, "note        {n}");
+    }
+    s
+}
+
+// ---------------------------------------------------------------------------
+// Errors against a reference
+// ---------------------------------------------------------------------------
+
+/// `‖a − b‖ / ‖b‖` (the absolute norm when `b` is zero).
+pub fn rel_err(a: &[f64], b: &[f64]) -> f64 {
+    let num: f64 = a.iter().zip(b).map(|(x, y)| (x - y) * (x - y)).sum::<f64>().sqrt();
+    let den: f64 = b.iter().map(|y| y * y).sum::<f64>().sqrt();
+    if den > 0.0 {
+        num / den
+    } else {
+        num
+    }
+}
+
+/// True error of a solution against a reference.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Errors {
+    /// Relative 2-norm error of the displacements.
+    pub error_u: f64,
+    /// Relative 2-norm error of the tensions.
+    pub error_t: f64,
+    /// Elements whose slack flag differs.
+    pub slack_mismatch: usize,
+}
+
+impl Errors {
+    /// `max(error_u, error_t)`.
+    pub fn max(&self) -> f64 {
+        self.error_u.max(self.error_t)
+    }
+}
+
+fn flat(v: &[[f64; 3]]) -> Vec<f64> {
+    v.iter().flatten().copied().collect()
+}
+
+/// Errors of `r` against `reference` (both top-level states).
+pub fn compare(r: &SolveResult, reference: &SolveResult) -> Errors {
+    Errors {
+        error_u: rel_err(&flat(&r.displacements), &flat(&reference.displacements)),
+        error_t: rel_err(&r.tensions, &reference.tensions),
+        slack_mismatch: r.slack.iter().zip(&reference.slack).filter(|(a, b)| a != b).count()
+            + r.slack.len().abs_diff(reference.slack.len()),
+    }
+}
+
+// ---------------------------------------------------------------------------
+// Progress of the studies
+// ---------------------------------------------------------------------------
+
+/// What a study tells its observer (the command line draws a bar from it).
+#[derive(Debug, Clone, Copy)]
+pub enum Event<'a> {
+    /// Run `run` of `runs` starts; `label` says which.
+    Start { label: &'a str, run: usize, runs: usize },
+    /// An iteration of the current run finished.
+    Iteration { iteration: usize, indicator: f64 },
+}
+
+/// Optional observer of a study.
+pub type Observer<'a> = Option<&'a mut dyn FnMut(Event<'_>)>;
+
+fn run_solve(scene: &Scene, opts: &SolveOptions, obs: &mut Observer<'_>) -> Result<SolveResult> {
+    match obs.as_deref_mut() {
+        Some(o) => {
+            let mut cb = |iteration: usize, indicator: f64| o(Event::Iteration { iteration, indicator });
+            solve_with_progress(scene, opts, Some(&mut cb))
+        }
+        None => solve_with_progress(scene, opts, None),
+    }
+}
+
+fn start(obs: &mut Observer<'_>, label: &str, run: usize, runs: usize) {
+    if let Some(o) = obs.as_deref_mut() {
+        o(Event::Start { label, run, runs });
+    }
+}
+
+// ---------------------------------------------------------------------------
+// Partition report
+// ---------------------------------------------------------------------------
+
+/// One subdomain of the partition report.
+#[derive(Debug, Clone, Serialize)]
+pub struct SubdomainInfo {
+    pub id: usize,
+    pub elements: usize,
+    pub dofs: usize,
+    /// Dimension of the kernel of `K_E` (0 for a regular subdomain); None
+    /// when the subdomain could not be factored (see `error`).
+    pub kernel_dim: Option<usize>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub error: Option<String>,
+}
+
+/// What `nsdd partition` prints.
+#[derive(Debug, Clone, Serialize)]
+pub struct PartitionReport {
+    pub scene: String,
+    pub quality: QualityReport,
+    pub subdomains: Vec<SubdomainInfo>,
+    /// `(subdomain, kernel dimension)` of every singular subdomain.
+    pub singular: Vec<(usize, usize)>,
+    /// Whether `monolevel` applies (no singular subdomain, more than one).
+    pub monolevel_applies: bool,
+}
+
+/// Partitions the scene into `subdomains` parts (or the user partition of
+/// the scene), reports the interface quality, and factors every subdomain
+/// matrix to find its kernel dimension.
+pub fn partition_report(scene: &Scene, subdomains: usize) -> Result<PartitionReport> {
+    let model = Model::from_scene(scene)?;
+    let dec = decompose(&model, scene, subdomains)?;
+    let quality = dec.quality(&model);
+    let infos: Vec<SubdomainInfo> = dec
+        .subdomains
+        .iter()
+        .enumerate()
+        .map(|(id, sd)| {
+            let (kernel_dim, error) = match SubdomainOperator::new(id, &model, sd, 1) {
+                Ok(op) => (Some(op.kernel_dim()), None),
+                Err(e) => (None, Some(e.to_string())),
+            };
+            SubdomainInfo {
+                id,
+                elements: sd.elements.len(),
+                dofs: sd.dofs.len(),
+                kernel_dim,
+                error,
+            }
+        })
+        .collect();
+    let singular: Vec<(usize, usize)> = infos
+        .iter()
+        .filter_map(|i| i.kernel_dim.filter(|&k| k > 0).map(|k| (i.id, k)))
+        .collect();
+    let monolevel_applies = dec.len() > 1 && infos.iter().all(|i| i.kernel_dim == Some(0));
+    Ok(PartitionReport {
+        scene: model.name.clone(),
+        quality,
+        subdomains: infos,
+        singular,
+        monolevel_applies,
+    })
+}
+
+impl PartitionReport {
+    /// Human-readable text.
+    pub fn text(&self) -> String {
+        let q = &self.quality;
+        let mut s = String::new();
+        let _ = writeln!(s, "scene               {}", self.scene);
+        let _ = writeln!(s, "subdomains          {}", q.subdomains);
+        let _ = writeln!(s, "interfaces          {}", q.interfaces);
+        let _ = writeln!(
+            s,
+            "interface dofs      {} ({} pair entries)",
+            q.interface_dofs, q.interface_entries
+        );
+        let _ = writeln!(
+            s,
+            "cross points        {} (max {} subdomains at a node)",
+            q.cross_points, q.max_node_multiplicity
+        );
+        let _ = writeln!(s, "element imbalance   {:.3} (max / mean)", q.element_imbalance);
+        let _ = writeln!(s, "subdomain  elements  dofs  kernel");
+        for i in &self.subdomains {
+            let k = match (&i.kernel_dim, &i.error) {
+                (Some(k), _) => k.to_string(),
+                (None, Some(e)) => format!("error: {e}"),
+                (None, None) => "-".into(),
+            };
+            let _ = writeln!(s, "{:>9}  {:>8}  {:>4}  {}", i.id, i.elements, i.dofs, k);
+        }
+        if self.singular.is_empty() {
+            let _ = writeln!(s, "singular subdomains none");
+        } else {
+            let list: Vec<String> = self.singular.iter().map(|(i, k)| format!("{i} (kernel {k})")).collect();
+            let _ = writeln!(s, "singular subdomains {}", list.join(", "));
+        }
+        let failed: Vec<String> = self
+            .subdomains
+            .iter()
+            .filter(|i| i.error.is_some())
+            .map(|i| i.id.to_string())
+            .collect();
+        if !failed.is_empty() {
+            let _ = writeln!(
+                s,
+                "factorization       failed for subdomain{} {}: no DD method can use this partition",
+                if failed.len() > 1 { "s" } else { "" },
+                failed.join(", ")
+            );
+        } else {
+            let _ = writeln!(
+                s,
+                "monolevel           {}",
+                if self.monolevel_applies {
+                    "applies"
+                } else {
+                    "does not apply (needs regular subdomains); use multilevel"
+                }
+            );
+        }
+        s
+    }
+}
+
+// ---------------------------------------------------------------------------
+// Accuracy study
+// ---------------------------------------------------------------------------
+
+/// Settings of [`accuracy`].
+#[derive(Debug, Clone)]
+pub struct AccuracyOptions {
+    /// Number of subdomains of the iterative methods.
+    pub subdomains: usize,
+    /// Tolerances to sweep, any order (run from loose to tight).
+    pub tolerances: Vec<f64>,
+    pub max_iterations: usize,
+    pub search_direction: SearchDirection,
+    /// Also sample the true error along the iterations of the tightest run
+    /// (costs one extra setup + partial solve per sample).
+    pub history: bool,
+    /// At most this many true-error samples per history.
+    pub history_samples: usize,
+}
+
+impl AccuracyOptions {
+    /// The scene's settings, 4 subdomains when the scene asks for one, and
+    /// the decades 1e-2 … 1e-10.
+    pub fn from_scene(scene: &Scene) -> AccuracyOptions {
+        AccuracyOptions {
+            subdomains: if scene.solver.subdomains > 1 {
+                scene.solver.subdomains
+            } else {
+                4
+            },
+            tolerances: default_tolerances(),
+            max_iterations: scene.solver.max_iterations,
+            search_direction: scene.solver.search_direction,
+            history: true,
+            history_samples: 24,
+        }
+    }
+}
+
+/// 1e-2, 1e-3, …, 1e-10.
+pub fn default_tolerances() -> Vec<f64> {
+    (2..=10).map(|k| 10f64.powi(-k)).collect()
+}
+
+/// One run of the accuracy study (a row of `accuracy.csv`).
+#[derive(Debug, Clone, Serialize)]
+pub struct AccuracyRow {
+    pub method: String,
+    /// None for the direct reference.
+    pub tolerance: Option<f64>,
+    pub error_u: f64,
+    pub error_t: f64,
+    pub slack_mismatch: usize,
+    pub iterations: usize,
+    /// Wall time, setup + solve.
+    pub seconds: f64,
+    pub setup_s: f64,
+    pub solve_s: f64,
+    pub converged: bool,
+}
+
+/// One iteration of a convergence history with, at sampled iterations, the
+/// true error against the direct solution.
+#[derive(Debug, Clone, Serialize)]
+pub struct HistoryPoint {
+    pub iteration: usize,
+    pub time_s: f64,
+    pub indicator: f64,
+    pub error_u: Option<f64>,
+    pub error_t: Option<f64>,
+}
+
+/// Convergence history of one method at one tolerance.
+#[derive(Debug, Clone, Serialize)]
+pub struct MethodHistory {
+    pub method: String,
+    pub tolerance: f64,
+    pub points: Vec<HistoryPoint>,
+}
+
+/// The whole accuracy study.
+#[derive(Debug, Clone, Serialize)]
+pub struct AccuracyReport {
+    pub scene: String,
+    pub subdomains: usize,
+    pub rows: Vec<AccuracyRow>,
+    pub histories: Vec<MethodHistory>,
+    /// Skipped methods and failed runs, with the reason.
+    pub notes: Vec<String>,
+}
+
+/// Header of `accuracy.csv`: the first seven columns are fixed; later ones
+/// may be added at the end.
+pub const ACCURACY_HEADER: &str =
+    "method,tolerance,error_u,error_t,slack_mismatch,iterations,seconds,setup_s,solve_s,converged";
+
+/// Header of `history-<method>.csv` (`error_u` and later columns are empty
+/// on iterations where the true error was not sampled).
+pub const HISTORY_HEADER: &str = "iteration,time_s,indicator,error_u,error_t";
+
+/// Iteration counts `1 = k_0 < k_1 < … < k_m = n`, geometric, at most
+/// `max_samples` of them (fewer when `n` is small).
+pub fn geometric_samples(n: usize, max_samples: usize) -> Vec<usize> {
+    if n == 0 || max_samples == 0 {
+        return Vec::new();
+    }
+    let m = max_samples.max(2) - 1;
+    let ratio = (n as f64).powf(1.0 / m as f64).max(1.0 + 1e-12);
+    let mut out = vec![1usize];
+    let mut x = 1.0f64;
+    while *out.last().unwrap() < n {
+        x *= ratio;
+        let k = (x.round() as usize).clamp(out.last().unwrap() + 1, n);
+        out.push(k);
+    }
+    out
+}
+
+fn method_options(
+    method: Method,
+    subdomains: usize,
+    tolerance: f64,
+    max_iterations: usize,
+    d: SearchDirection,
+) -> SolveOptions {
+    SolveOptions {
+        method,
+        subdomains,
+        tolerance,
+        max_iterations,
+        search_direction: d,
+    }
+}
+
+fn refuses(e: &Error) -> bool {
+    matches!(
+        e,
+        Error::MethodNotApplicable(_) | Error::Mechanism(_) | Error::IndefiniteSubdomain { .. }
+    )
+}
+
+/// Runs the direct method (the reference), then monolevel (when it applies)
+/// and multilevel at every tolerance, each with a fresh setup so that
+/// `seconds` is the honest time to that accuracy. Errors are true errors
+/// against the direct solution. With `opts.history`, the tightest run of each
+/// iterative method also gets its convergence history with the true error
+/// at a geometric sample of iteration counts, measured by re-running the
+/// same (deterministic) iteration with `max_iterations = k`.
+///
+/// A method that refuses the decomposition (monolevel with a singular
+/// subdomain) or fails at one tolerance (divergence) is recorded in `notes`
+/// and skipped; only a failing direct reference is an error.
+pub fn accuracy(scene: &Scene, opts: &AccuracyOptions, mut obs: Observer<'_>) -> Result<AccuracyReport> {
+    let mut tols: Vec<f64> = opts.tolerances.clone();
+    if let Some(t) = tols.iter().find(|t| !(t.is_finite() && **t > 0.0)) {
+        return Err(Error::input(
+            "tolerances",
+            None,
+            format!("must be positive numbers, got {t}"),
+        ));
+    }
+    if tols.is_empty() {
+        return Err(Error::input("tolerances", None, "at least one tolerance is needed"));
+    }
+    tols.sort_by(|a, b| b.partial_cmp(a).unwrap());
+    tols.dedup();
+    let iterative = [Method::Monolevel, Method::Multilevel];
+    let runs = 1 + iterative.len() * tols.len();
+    start(&mut obs, "direct", 0, runs);
+    let dopts = method_options(
+        Method::Direct,
+        1,
+        tols[tols.len() - 1],
+        opts.max_iterations,
+        opts.search_direction,
+    );
+    let reference = run_solve(scene, &dopts, &mut obs)?;
+    let mut rows = vec![AccuracyRow {
+        method: "direct".into(),
+        tolerance: None,
+        error_u: 0.0,
+        error_t: 0.0,
+        slack_mismatch: 0,
+        iterations: reference.iterations,
+        seconds: reference.timings_s.setup + reference.timings_s.solve,
+        setup_s: reference.timings_s.setup,
+        solve_s: reference.timings_s.solve,
+        converged: reference.converged,
+    }];
+    let mut notes = Vec::new();
+    let mut histories = Vec::new();
+
+    for (mi, method) in iterative.into_iter().enumerate() {
+        let name = method.name();
+        let mut tightest: Option<(f64, SolveResult)> = None;
+        for (ti, &tol) in tols.iter().enumerate() {
+            let label = format!("{name} tol {tol:e}");
+            start(&mut obs, &label, 1 + mi * tols.len() + ti, runs);
+            let o = method_options(method, opts.subdomains, tol, opts.max_iterations, opts.search_direction);
+            match run_solve(scene, &o, &mut obs) {
+                Ok(r) => {
+                    let e = compare(&r, &reference);
+                    rows.push(AccuracyRow {
+                        method: name.into(),
+                        tolerance: Some(tol),
+                        error_u: e.error_u,
+                        error_t: e.error_t,
+                        slack_mismatch: e.slack_mismatch,
+                        iterations: r.iterations,
+                        seconds: r.timings_s.setup + r.timings_s.solve,
+                        setup_s: r.timings_s.setup,
+                        solve_s: r.timings_s.solve,
+                        converged: r.converged,
+                    });
+                    if !r.converged {
+                        notes.push(format!(
+                            "{name} at tolerance {tol:e}: not converged after {} iterations",
+                            r.iterations
+                        ));
+                    }
+                    tightest = Some((tol, r));
+                }
+                Err(e) if refuses(&e) => {
+                    notes.push(format!("{name} skipped: {e}"));
+                    break;
+                }
+                Err(e) => notes.push(format!("{name} at tolerance {tol:e} failed: {e}")),
+            }
+        }
+        if let (true, Some((tol, r))) = (opts.history, tightest) {
+            histories.push(history_with_errors(scene, opts, method, tol, &r, &reference, &mut obs)?);
+        }
+    }
+    Ok(AccuracyReport {
+        scene: reference.scene.clone(),
+        subdomains: opts.subdomains,
+        rows,
+        histories,
+        notes,
+    })
+}
+
+fn history_with_errors(
+    scene: &Scene,
+    opts: &AccuracyOptions,
+    method: Method,
+    tol: f64,
+    r: &SolveResult,
+    reference: &SolveResult,
+    obs: &mut Observer<'_>,
+) -> Result<MethodHistory> {
+    let mut points: Vec<HistoryPoint> = r
+        .history
+        .iter()
+        .map(|h| HistoryPoint {
+            iteration: h.iteration,
+            time_s: h.time_s,
+            indicator: h.indicator,
+            error_u: None,
+            error_t: None,
+        })
+        .collect();
+    // Load paths and load cases solve several times: the history is the
+    // last solve's, which re-running with fewer iterations would not match.
+    let sample = scene.load_path.is_none() && r.load_cases.is_empty();
+    if sample {
+        let n = r.iterations;
+        let samples = geometric_samples(n, opts.history_samples);
+        for (i, &k) in samples.iter().enumerate() {
+            let e = if k == n {
+                compare(r, reference)
+            } else {
+                let label = format!("{} history {}/{}", method.name(), i + 1, samples.len());
+                start(obs, &label, 0, 0);
+                let o = method_options(method, opts.subdomains, tol, k, opts.search_direction);
+                match run_solve(scene, &o, obs) {
+                    Ok(rk) => compare(&rk, reference),
+                    Err(_) => continue,
+                }
+            };
+            if let Some(p) = points.iter_mut().find(|p| p.iteration == k) {
+                p.error_u = Some(e.error_u);
+                p.error_t = Some(e.error_t);
+            }
+        }
+    }
+    Ok(MethodHistory {
+        method: method.name().into(),
+        tolerance: tol,
+        points,
+    })
+}
+
+fn opt_num(v: Option<f64>) -> String {
+    v.map(|x| format!("{x:.6e}")).unwrap_or_default()
+}
+
+impl AccuracyReport {
+    /// `accuracy.csv`: [`ACCURACY_HEADER`], then one row per run (the direct
+    /// reference has an empty tolerance and zero error by definition).
+    pub fn csv(&self) -> String {
+        let mut s = String::from(ACCURACY_HEADER);
+        s.push('\n');
+        for r in &self.rows {
+            let _ = writeln!(
+                s,
+                "{},{},{:.6e},{:.6e},{},{},{:.6e},{:.6e},{:.6e},{}",
+                r.method,
+                r.tolerance.map(|t| format!("{t:e}")).unwrap_or_default(),
+                r.error_u,
+                r.error_t,
+                r.slack_mismatch,
+                r.iterations,
+                r.seconds,
+                r.setup_s,
+                r.solve_s,
+                r.converged
+            );
+        }
+        s
+    }
+
+    /// The study as text: the notes, then one line per run.
+    pub fn text(&self) -> String {
+        let mut s = String::new();
+        let _ = writeln!(
+            s,
+            "scene {} ({} subdomains for the iterative methods)",
+            self.scene, self.subdomains
+        );
+        let _ = writeln!(
+            s,
+            "{:<11} {:>9} {:>12} {:>12} {:>6} {:>7} {:>10}",
+            "method", "tolerance", "error_u", "error_t", "slack", "iters", "seconds"
+        );
+        for r in &self.rows {
+            let _ = writeln!(
+                s,
+                "{:<11} {:>9} {:>12.3e} {:>12.3e} {:>6} {:>7} {:>10.4}{}",
+                r.method,
+                r.tolerance.map(|t| format!("{t:e}")).unwrap_or_else(|| "-".into()),
+                r.error_u,
+                r.error_t,
+                r.slack_mismatch,
+                r.iterations,
+                r.seconds,
+                if r.converged { "" } else { "  (not converged)" }
+            );
+        }
+        for n in &self.notes {
+            let _ = writeln!(s, "note: {n}");
+        }
+        s
+    }
+}
+
+impl MethodHistory {
+    /// `history-<method>.csv`: [`HISTORY_HEADER`], one row per iteration.
+    pub fn csv(&self) -> String {
+        let mut s = String::from(HISTORY_HEADER);
+        s.push('\n');
+        for p in &self.points {
+            let _ = writeln!(
+                s,
+                "{},{:.6e},{:.6e},{},{}",
+                p.iteration,
+                p.time_s,
+                p.indicator,
+                opt_num(p.error_u),
+                opt_num(p.error_t)
+            );
+        }
+        s
+    }
+}
+
+// ---------------------------------------------------------------------------
+// Scaling study
+// ---------------------------------------------------------------------------
+
+/// Settings of [`scaling`].
+#[derive(Debug, Clone)]
+pub struct ScalingOptions {
+    /// Generator kind (`generate::KINDS`).
+    pub kind: String,
+    /// Scene sizes: `nx = ny = size` (grid, tensegrity) or `nz = size` (tower).
+    pub sizes: Vec<usize>,
+    /// Subdomain counts.
+    pub subdomains: Vec<usize>,
+    pub tolerance: f64,
+    pub max_iterations: usize,
+    pub search_direction: SearchDirection,
+    /// Size of the strong-scaling study (default: the largest of `sizes`).
+    pub strong_size: Option<usize>,
+    /// Extra generator parameters (`key=value`).
+    pub params: BTreeMap<String, String>,
+}
+
+/// One row of `scaling.csv`.
+#[derive(Debug, Clone, Serialize)]
+pub struct ScalingRow {
+    /// `strong` (fixed size, more subdomains) or `weak` (size grows with the
+    /// number of subdomains).
+    pub study: String,
+    pub size: usize,
+    pub subdomains: usize,
+    pub method: String,
+    pub dofs: usize,
+    pub elements: usize,
+    /// None for a skipped run.
+    pub iterations: Option<usize>,
+    pub converged: bool,
+    pub setup_s: f64,
+    pub solve_s: f64,
+    /// Displacement error against the direct solution of the same scene.
+    pub error_u: Option<f64>,
+    /// Why the run was skipped (empty otherwise).
+    pub skipped: String,
+}
+
+/// The scaling study.
+#[derive(Debug, Clone, Serialize)]
+pub struct ScalingReport {
+    pub kind: String,
+    pub tolerance: f64,
+    pub rows: Vec<ScalingRow>,
+    pub notes: Vec<String>,
+}
+
+/// Header of `scaling.csv`.
+pub const SCALING_HEADER: &str =
+    "study,size,subdomains,method,dofs,elements,iterations,converged,setup_s,solve_s,seconds,error_u,skipped";
+
+fn scaling_scene(opts: &ScalingOptions, size: usize) -> Result<Scene> {
+    let mut args = opts.params.clone();
+    if opts.kind == "tower" {
+        args.insert("nz".into(), size.to_string());
+    } else {
+        args.insert("nx".into(), size.to_string());
+        args.insert("ny".into(), size.to_string());
+    }
+    crate::generate::by_name(&opts.kind, &args)
+}
+
+/// Strong scaling (the strong size with every subdomain count) and weak
+/// scaling (`sizes[i]` with `subdomains[i]`), each with monolevel (no coarse
+/// step) and multilevel, plus one direct row per size as the time reference.
+/// A refused or failed run becomes a row with `skipped` set.
+pub fn scaling(opts: &ScalingOptions, mut obs: Observer<'_>) -> Result<ScalingReport> {
+    if opts.sizes.is_empty() || opts.subdomains.is_empty() {
+        return Err(Error::input(
+            "sizes",
+            None,
+            "at least one size and one subdomain count are needed",
+        ));
+    }
+    if !(opts.tolerance.is_finite() && opts.tolerance > 0.0) {
+        return Err(Error::input(
+            "tolerance",
+            None,
+            format!("must be a positive number, got {}", opts.tolerance),
+        ));
+    }
+    let strong = opts.strong_size.unwrap_or_else(|| *opts.sizes.iter().max().unwrap());
+    let mut notes = Vec::new();
+    if opts.sizes.len() != opts.subdomains.len() {
+        notes.push(format!(
+            "weak scaling pairs sizes with subdomain counts: {} sizes and {} counts given, {} pairs used",
+            opts.sizes.len(),
+            opts.subdomains.len(),
+            opts.sizes.len().min(opts.subdomains.len())
+        ));
+    }
+    let mut plan: Vec<(&str, usize, usize)> = opts.subdomains.iter().map(|&n| ("strong", strong, n)).collect();
+    plan.extend(opts.sizes.iter().zip(&opts.subdomains).map(|(&s, &n)| ("weak", s, n)));
+    let methods = [Method::Monolevel, Method::Multilevel];
+    let runs = plan.len() * methods.len();
+    let mut cache: BTreeMap<usize, (Scene, SolveResult, usize, usize)> = BTreeMap::new();
+    let mut rows = Vec::new();
+    let mut run = 0;
+    for (study, size, nsub) in plan {
+        if let std::collections::btree_map::Entry::Vacant(slot) = cache.entry(size) {
+            let scene = scaling_scene(opts, size)?;
+            let model = Model::from_scene(&scene)?;
+            start(&mut obs, &format!("direct size {size}"), run, runs);
+            let dopts = method_options(
+                Method::Direct,
+                1,
+                opts.tolerance,
+                opts.max_iterations,
+                opts.search_direction,
+            );
+            let reference = run_solve(&scene, &dopts, &mut obs)?;
+            slot.insert((scene, reference, model.n_free, model.elements.len()));
+        }
+        let (scene, reference, dofs, elements) = &cache[&size];
+        if !rows
+            .iter()
+            .any(|r: &ScalingRow| r.method == "direct" && r.study == study && r.size == size)
+        {
+            rows.push(ScalingRow {
+                study: study.into(),
+                size,
+                subdomains: 1,
+                method: "direct".into(),
+                dofs: *dofs,
+                elements: *elements,
+                iterations: Some(reference.iterations),
+                converged: reference.converged,
+                setup_s: reference.timings_s.setup,
+                solve_s: reference.timings_s.solve,
+                error_u: Some(0.0),
+                skipped: String::new(),
+            });
+        }
+        for method in methods {
+            start(
+                &mut obs,
+                &format!("{study} size {size} {} {nsub} subdomains", method.name()),
+                run,
+                runs,
+            );
+            run += 1;
+            // The same run in the other study (the strong size with its
+            // subdomain count in the weak list): reuse it.
+            if let Some(prev) = rows
+                .iter()
+                .find(|r| r.size == size && r.subdomains == nsub && r.method == method.name())
+                .cloned()
+            {
+                rows.push(ScalingRow {
+                    study: study.into(),
+                    ..prev
+                });
+                continue;
+            }
+            let o = method_options(method, nsub, opts.tolerance, opts.max_iterations, opts.search_direction);
+            let mut row = ScalingRow {
+                study: study.into(),
+                size,
+                subdomains: nsub,
+                method: method.name().into(),
+                dofs: *dofs,
+                elements: *elements,
+                iterations: None,
+                converged: false,
+                setup_s: 0.0,
+                solve_s: 0.0,
+                error_u: None,
+                skipped: String::new(),
+            };
+            match run_solve(scene, &o, &mut obs) {
+                Ok(r) => {
+                    row.iterations = Some(r.iterations);
+                    row.converged = r.converged;
+                    row.setup_s = r.timings_s.setup;
+                    row.solve_s = r.timings_s.solve;
+                    row.error_u = Some(compare(&r, reference).error_u);
+                    if !r.converged {
+                        row.skipped = format!("not converged after {} iterations", r.iterations);
+                    }
+                }
+                Err(e) => row.skipped = e.to_string(),
+            }
+            rows.push(row);
+        }
+    }
+    Ok(ScalingReport {
+        kind: opts.kind.clone(),
+        tolerance: opts.tolerance,
+        rows,
+        notes,
+    })
+}
+
+fn csv_field(s: &str) -> String {
+    if s.contains([',', '"', '\n']) {
+        format!("\"{}\"", s.replace('"', "\"\""))
+    } else {
+        s.to_string()
+    }
+}
+
+impl ScalingReport {
+    /// `scaling.csv`: [`SCALING_HEADER`], one row per run.
+    pub fn csv(&self) -> String {
+        let mut s = String::from(SCALING_HEADER);
+        s.push('\n');
+        for r in &self.rows {
+            let _ = writeln!(
+                s,
+                "{},{},{},{},{},{},{},{},{:.6e},{:.6e},{:.6e},{},{}",
+                r.study,
+                r.size,
+                r.subdomains,
+                r.method,
+                r.dofs,
+                r.elements,
+                r.iterations.map(|i| i.to_string()).unwrap_or_default(),
+                r.converged,
+                r.setup_s,
+                r.solve_s,
+                r.setup_s + r.solve_s,
+                opt_num(r.error_u),
+                csv_field(&r.skipped)
+            );
+        }
+        s
+    }
+
+    /// The study as text.
+    pub fn text(&self) -> String {
+        let mut s = String::new();
+        let _ = writeln!(s, "{} scenes, tolerance {:e}", self.kind, self.tolerance);
+        let _ = writeln!(
+            s,
+            "{:<6} {:>5} {:>5} {:<10} {:>8} {:>7} {:>10} {:>10}",
+            "study", "size", "subs", "method", "dofs", "iters", "seconds", "error_u"
+        );
+        for r in &self.rows {
+            let _ = write!(
+                s,
+                "{:<6} {:>5} {:>5} {:<10} {:>8} ",
+                r.study, r.size, r.subdomains, r.method, r.dofs
+            );
+            match r.iterations {
+                Some(i) => {
+                    let _ = write!(
+                        s,
+                        "{:>7} {:>10.4} {:>10.2e}",
+                        i,
+                        r.setup_s + r.solve_s,
+                        r.error_u.unwrap_or(f64::NAN)
+                    );
+                }
+                None => {
+                    let _ = write!(s, "{:>7} {:>10} {:>10}", "-", "-", "-");
+                }
+            }
+            if !r.skipped.is_empty() {
+                let _ = write!(s, "  {}", r.skipped);
+            }
+            s.push('\n');
+        }
+        for n in &self.notes {
+            let _ = writeln!(s, "note: {n}");
+        }
+        s
+    }
+}
+
+// ---------------------------------------------------------------------------
+// Plots (SVG)
+// ---------------------------------------------------------------------------
+
+const COLORS: [RGBColor; 5] = [
+    RGBColor(31, 119, 180),
+    RGBColor(214, 39, 40),
+    RGBColor(44, 160, 44),
+    RGBColor(148, 103, 189),
+    RGBColor(255, 127, 14),
+];
+
+/// Smallest error drawn on a log axis (a zero error is drawn there).
+pub const ERROR_FLOOR: f64 = 1e-17;
+
+fn plot_err<E: std::fmt::Display>(e: E) -> Error {
+    Error::Io(format!("cannot draw the plot: {e}"))
+}
+
+/// A log-axis range covering `values` (positive ones), padded.
+fn log_range(values: impl Iterator<Item = f64>) -> std::ops::Range<f64> {
+    let (lo, hi) = values
+        .filter(|v| v.is_finite() && *v > 0.0)
+        .fold((f64::INFINITY, 0.0f64), |(lo, hi), v| (lo.min(v), hi.max(v)));
+    if !(lo.is_finite() && hi > 0.0) {
+        return 1e-3..1.0;
+    }
+    let (lo, hi) = if hi / lo < 10.0 {
+        (lo / 3.0, hi * 3.0)
+    } else {
+        (lo / 1.5, hi * 1.5)
+    };
+    lo..hi
+}
+
+/// `accuracy.svg`: error `max(error_u, error_t)` against wall time (setup +
+/// solve), log-log, one curve per iterative method (a point per tolerance,
+/// joined loose to tight), the direct solve as one marked point (a decade
+/// below the smallest other error, its own error being zero by definition).
+pub fn accuracy_svg(report: &AccuracyReport) -> Result<String> {
+    let mut buf = String::new();
+    {
+        let root = SVGBackend::with_string(&mut buf, (900, 600)).into_drawing_area();
+        root.fill(&WHITE).map_err(plot_err)?;
+        // The direct reference has error 0 by definition: draw it a decade
+        // below the smallest error of the other runs.
+        let floor = report
+            .rows
+            .iter()
+            .map(|r| r.error_u.max(r.error_t))
+            .filter(|e| *e > 0.0)
+            .fold(f64::INFINITY, f64::min);
+        let floor = if floor.is_finite() {
+            (floor / 10.0).max(ERROR_FLOOR)
+        } else {
+            ERROR_FLOOR
+        };
+        let err = |r: &AccuracyRow| {
+            if r.method == "direct" {
+                floor
+            } else {
+                r.error_u.max(r.error_t).max(ERROR_FLOOR)
+            }
+        };
+        let xr = log_range(report.rows.iter().map(|r| r.seconds));
+        let yr = log_range(report.rows.iter().map(err));
+        let mut chart = ChartBuilder::on(&root)
+            .caption(
+                format!("{}: error against time to accuracy", report.scene),
+                ("sans-serif", 22),
+            )
+            .margin(15)
+            .x_label_area_size(45)
+            .y_label_area_size(80)
+            .build_cartesian_2d(xr.log_scale(), yr.log_scale())
+            .map_err(plot_err)?;
+        chart
+            .configure_mesh()
+            .light_line_style(RGBColor(238, 238, 238))
+            .x_desc("wall time, setup + solve [s]")
+            .y_desc("relative error (max of u, t) against direct")
+            .x_label_formatter(&|x| format!("{x:.0e}"))
+            .y_label_formatter(&|y| format!("{y:.0e}"))
+            .draw()
+            .map_err(plot_err)?;
+        let mut methods: Vec<&str> = Vec::new();
+        for r in &report.rows {
+            if r.method != "direct" && !methods.contains(&r.method.as_str()) {
+                methods.push(&r.method);
+            }
+        }
+        for (i, m) in methods.iter().enumerate() {
+            let color = COLORS[i % COLORS.len()];
+            // In tolerance order (loose to tight), as the rows are.
+            let pts: Vec<(f64, f64)> = report
+                .rows
+                .iter()
+                .filter(|r| r.method == *m)
+                .map(|r| (r.seconds.max(1e-9), err(r)))
+                .collect();
+            chart
+                .draw_series(LineSeries::new(pts.clone(), color.stroke_width(2)))
+                .map_err(plot_err)?
+                .label(*m)
+                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2)));
+            chart
+                .draw_series(pts.iter().map(|&p| Circle::new(p, 4, color.filled())))
+                .map_err(plot_err)?;
+        }
+        if let Some(d) = report.rows.iter().find(|r| r.method == "direct") {
+            chart
+                .draw_series(std::iter::once(Cross::new(
+                    (d.seconds.max(1e-9), err(d)),
+                    8,
+                    BLACK.stroke_width(3),
+                )))
+                .map_err(plot_err)?
+                .label("direct (reference, error 0, drawn at the bottom)")
+                .legend(|(x, y)| Cross::new((x + 10, y), 5, BLACK.stroke_width(2)));
+        }
+        chart
+            .configure_series_labels()
+            .position(SeriesLabelPosition::UpperRight)
+            .background_style(WHITE.mix(0.85))
+            .border_style(BLACK)
+            .draw()
+            .map_err(plot_err)?;
+        root.present().map_err(plot_err)?;
+    }
+    Ok(buf)
+}
+
+/// `history-<method>.svg`: the convergence indicator at every iteration and
+/// the sampled true error, against solve time, log y.
+pub fn history_svg(h: &MethodHistory) -> Result<String> {
+    let mut buf = String::new();
+    {
+        let root = SVGBackend::with_string(&mut buf, (900, 600)).into_drawing_area();
+        root.fill(&WHITE).map_err(plot_err)?;
+        let ind: Vec<(f64, f64)> = h
+            .points
+            .iter()
+            .filter(|p| p.indicator > 0.0 && p.indicator.is_finite())
+            .map(|p| (p.time_s, p.indicator))
+            .collect();
+        let err: Vec<(f64, f64)> = h
+            .points
+            .iter()
+            .filter_map(|p| p.error_u.map(|e| (p.time_s, e.max(ERROR_FLOOR))))
+            .collect();
+        let tmax = h.points.iter().map(|p| p.time_s).fold(0.0f64, f64::max).max(1e-6) * 1.05;
+        let yr = log_range(ind.iter().chain(&err).map(|p| p.1));
+        let mut chart = ChartBuilder::on(&root)
+            .caption(
+                format!("{} convergence (tolerance {:e})", h.method, h.tolerance),
+                ("sans-serif", 22),
+            )
+            .margin(15)
+            .x_label_area_size(45)
+            .y_label_area_size(80)
+            .build_cartesian_2d(0.0..tmax, yr.log_scale())
+            .map_err(plot_err)?;
+        chart
+            .configure_mesh()
+            .light_line_style(RGBColor(238, 238, 238))
+            .x_desc("solve time [s]")
+            .y_desc("indicator / relative error of u")
+            .y_label_formatter(&|y| format!("{y:.0e}"))
+            .draw()
+            .map_err(plot_err)?;
+        let c0 = COLORS[0];
+        chart
+            .draw_series(LineSeries::new(ind, c0.stroke_width(2)))
+            .map_err(plot_err)?
+            .label("indicator")
+            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], c0.stroke_width(2)));
+        let c1 = COLORS[1];
+        chart
+            .draw_series(LineSeries::new(err.clone(), c1.stroke_width(2)))
+            .map_err(plot_err)?
+            .label("true error of u (against direct)")
+            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], c1.stroke_width(2)));
+        chart
+            .draw_series(err.iter().map(|&p| Circle::new(p, 4, c1.filled())))
+            .map_err(plot_err)?;
+        chart
+            .configure_series_labels()
+            .position(SeriesLabelPosition::UpperRight)
+            .background_style(WHITE.mix(0.85))
+            .border_style(BLACK)
+            .draw()
+            .map_err(plot_err)?;
+        root.present().map_err(plot_err)?;
+    }
+    Ok(buf)
+}
+
+/// `scaling.svg`: iterations against the number of subdomains (strong
+/// scaling, left) and against the size (weak scaling, right), one curve per
+/// iterative method; skipped runs are left out.
+pub fn scaling_svg(report: &ScalingReport) -> Result<String> {
+    let mut buf = String::new();
+    {
+        let root = SVGBackend::with_string(&mut buf, (1200, 550)).into_drawing_area();
+        root.fill(&WHITE).map_err(plot_err)?;
+        let panels = root.split_evenly((1, 2));
+        for (panel, study) in panels.iter().zip(["strong", "weak"]) {
+            let rows: Vec<&ScalingRow> = report
+                .rows
+                .iter()
+                .filter(|r| r.study == study && r.method != "direct" && r.iterations.is_some())
+                .collect();
+            // log2 of the subdomain count or size on a linear axis, labelled
+            // with the value at powers of two.
+            let xval = |r: &ScalingRow| (if study == "strong" { r.subdomains } else { r.size }).max(1) as f64;
+            let xval = |r: &ScalingRow| xval(r).log2();
+            let all: Vec<&ScalingRow> = report
+                .rows
+                .iter()
+                .filter(|r| r.study == study && r.method != "direct")
+                .collect();
+            let (x0, x1) = all
+                .iter()
+                .map(|r| xval(r))
+                .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), x| (a.min(x), b.max(x)));
+            let xr = if x0.is_finite() {
+                (x0.floor() - 0.5)..(x1.ceil() + 0.5)
+            } else {
+                0.0..1.0
+            };
+            let n_labels = (xr.end - xr.start).round() as usize + 1;
+            let ymax = rows.iter().filter_map(|r| r.iterations).max().unwrap_or(1).max(1) as f64 * 1.15;
+            let title = if study == "strong" {
+                let size = all.first().map(|r| r.size).unwrap_or(0);
+                format!("strong: size {size}, iterations vs subdomains")
+            } else {
+                "weak: size grows with subdomains".to_string()
+            };
+            let mut chart = ChartBuilder::on(panel)
+                .caption(title, ("sans-serif", 20))
+                .margin(15)
+                .x_label_area_size(45)
+                .y_label_area_size(60)
+                .build_cartesian_2d(xr, 0.0..ymax)
+                .map_err(plot_err)?;
+            chart
+                .configure_mesh()
+                .light_line_style(RGBColor(238, 238, 238))
+                .x_labels(n_labels)
+                .x_desc(if study == "strong" {
+                    "subdomains (log scale)"
+                } else {
+                    "size (log scale)"
+                })
+                .y_desc("iterations")
+                .x_label_formatter(&|x| {
+                    if (x - x.round()).abs() < 1e-6 {
+                        format!("{:.0}", 2f64.powf(x.round()))
+                    } else {
+                        String::new()
+                    }
+                })
+                .y_label_formatter(&|y| format!("{y:.0}"))
+                .draw()
+                .map_err(plot_err)?;
+            let mut methods: Vec<&str> = Vec::new();
+            for r in &all {
+                if !methods.contains(&r.method.as_str()) {
+                    methods.push(&r.method);
+                }
+            }
+            for (i, m) in methods.iter().enumerate() {
+                let color = COLORS[i % COLORS.len()];
+                let mut pts: Vec<(f64, f64)> = rows
+                    .iter()
+                    .filter(|r| r.method == *m)
+                    .map(|r| (xval(r), r.iterations.unwrap_or(0) as f64))
+                    .collect();
+                pts.sort_by(|a, b| a.0.partial_cmp(&b.0).unwrap());
+                let label = if pts.is_empty() {
+                    format!("{m} (every run skipped)")
+                } else {
+                    m.to_string()
+                };
+                chart
+                    .draw_series(LineSeries::new(pts.clone(), color.stroke_width(2)))
+                    .map_err(plot_err)?
+                    .label(label)
+                    .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2)));
+                chart
+                    .draw_series(pts.iter().map(|&p| Circle::new(p, 4, color.filled())))
+                    .map_err(plot_err)?;
+            }
+            chart
+                .configure_series_labels()
+                .position(SeriesLabelPosition::UpperLeft)
+                .background_style(WHITE.mix(0.85))
+                .border_style(BLACK)
+                .draw()
+                .map_err(plot_err)?;
+        }
+        root.present().map_err(plot_err)?;
+    }
+    Ok(buf)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn samples_are_geometric_and_end_at_n() {
+        assert_eq!(geometric_samples(0, 10), Vec::<usize>::new());
+        assert_eq!(geometric_samples(1, 10), vec![1]);
+        assert_eq!(geometric_samples(5, 24), vec![1, 2, 3, 4, 5]);
+        let s = geometric_samples(10_000, 24);
+        assert!(s.len() <= 24, "{s:?}");
+        assert_eq!(*s.last().unwrap(), 10_000);
+        assert!(s.windows(2).all(|w| w[0] < w[1]));
+    }
+
+    #[test]
+    fn rel_err_of_zero_reference_is_absolute() {
+        assert_eq!(rel_err(&[3.0, 4.0], &[0.0, 0.0]), 5.0);
+        assert!((rel_err(&[1.0, 1.0], &[1.0, 0.0]) - 1.0).abs() < 1e-15);
+    }
+}

@@ -1,0 +1,478 @@
+//! End-to-end tests of the `nsdd` binary on small scenes: result files,
+//! exit codes and messages, generation round trip, the accuracy and scaling
+//! studies' CSV and SVG output.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+use serde_json::Value;
+
+fn nsdd(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_nsdd"))
+        .args(args)
+        .output()
+        .expect("run nsdd")
+}
+
+fn text(b: &[u8]) -> String {
+    String::from_utf8_lossy(b).into_owned()
+}
+
+/// A fresh, empty directory for one test.
+fn tmp(name: &str) -> PathBuf {
+    let d = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join(format!("cli-{name}"));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+fn root() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+}
+
+fn reference_dir() -> PathBuf {
+    root().join("../shared/reference")
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+fn ok(out: &Output) {
+    assert!(
+        out.status.success(),
+        "status {:?}\nstdout:\n{}\nstderr:\n{}",
+        out.status,
+        text(&out.stdout),
+        text(&out.stderr)
+    );
+}
+
+fn read_json(p: &Path) -> Value {
+    serde_json::from_str(&std::fs::read_to_string(p).unwrap()).unwrap()
+}
+
+fn flat_u(v: &Value) -> Vec<f64> {
+    v["displacements"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .flat_map(|d| {
+            d.as_array()
+                .unwrap()
+                .iter()
+                .map(|x| x.as_f64().unwrap())
+                .collect::<Vec<_>>()
+        })
+        .collect()
+}
+
+fn nums(v: &Value, key: &str) -> Vec<f64> {
+    v[key].as_array().unwrap().iter().map(|x| x.as_f64().unwrap()).collect()
+}
+
+fn bools(v: &Value, key: &str) -> Vec<bool> {
+    v[key]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|x| x.as_bool().unwrap())
+        .collect()
+}
+
+fn rel_err(a: &[f64], b: &[f64]) -> f64 {
+    assert_eq!(a.len(), b.len());
+    let num: f64 = a.iter().zip(b).map(|(x, y)| (x - y) * (x - y)).sum::<f64>().sqrt();
+    let den: f64 = b.iter().map(|y| y * y).sum::<f64>().sqrt();
+    num / den.max(f64::MIN_POSITIVE)
+}
+
+/// Displacements and tensions within `tol`, slack sets equal.
+fn assert_matches(r: &Value, reference: &Value, tol: f64, what: &str) {
+    let eu = rel_err(&flat_u(r), &flat_u(reference));
+    let et = rel_err(&nums(r, "tensions"), &nums(reference, "tensions"));
+    assert!(eu < tol, "{what}: displacement error {eu:e}");
+    assert!(et < tol, "{what}: tension error {et:e}");
+    assert_eq!(
+        bools(r, "slack"),
+        bools(reference, "slack"),
+        "{what}: slack sets differ"
+    );
+}
+
+fn assert_result_fields(v: &Value) {
+    for key in [
+        "scene",
+        "method",
+        "effects",
+        "stages",
+        "converged",
+        "iterations",
+        "subdomains",
+        "displacements",
+        "tensions",
+        "slack",
+        "history",
+        "timings_s",
+    ] {
+        assert!(v.get(key).is_some(), "result lacks '{key}'");
+    }
+    assert!(v["timings_s"]["setup"].is_number() && v["timings_s"]["solve"].is_number());
+    let h = &v["history"][0];
+    assert!(h["iteration"].is_u64() && h["time_s"].is_number() && h["indicator"].is_number());
+}
+
+fn assert_svg(p: &Path) {
+    let t = std::fs::read_to_string(p).unwrap_or_else(|e| panic!("{}: {e}", p.display()));
+    let t = t.trim();
+    assert!(
+        t.starts_with("<svg") || t.starts_with("<?xml"),
+        "{}: not an SVG",
+        p.display()
+    );
+    assert!(t.ends_with("</svg>"), "{}: truncated SVG", p.display());
+    assert!(
+        t.contains("<polyline") || t.contains("<path") || t.contains("<circle"),
+        "{}: nothing drawn",
+        p.display()
+    );
+}
+
+#[test]
+fn solve_grid8_matches_direct_and_writes_outputs() {
+    let d = tmp("grid8");
+    let scene = root().join("scenes/grid-8x8.toml");
+    let (ml, vtu) = (d.join("ml.json"), d.join("ml.vtu"));
+    let out = nsdd(&["solve", s(&scene), "--out", s(&ml), "--vtk", s(&vtu), "--threads", "2"]);
+    ok(&out);
+    let stdout = text(&out.stdout);
+    for word in ["multilevel", "converged", "max |u|", "slack", "stages"] {
+        assert!(stdout.contains(word), "summary lacks '{word}':\n{stdout}");
+    }
+    assert!(
+        text(&out.stderr).is_empty(),
+        "stderr not empty when not a terminal:\n{}",
+        text(&out.stderr)
+    );
+    let direct = d.join("direct.json");
+    ok(&nsdd(&["solve", s(&scene), "--method", "direct", "--out", s(&direct)]));
+    let (r, rd) = (read_json(&ml), read_json(&direct));
+    assert_result_fields(&r);
+    assert_eq!(r["method"], "multilevel");
+    assert_eq!(r["subdomains"], 4);
+    assert_eq!(r["converged"], true);
+    assert!(r["stages"].as_array().unwrap().iter().any(|s| s == "coarse"));
+    assert_eq!(rd["method"], "direct");
+    assert_matches(&r, &rd, 1e-6, "grid-8x8 multilevel vs direct");
+    let vt = std::fs::read_to_string(&vtu).unwrap();
+    assert!(vt.starts_with("<?xml") && vt.contains("Name=\"subdomain\"") && vt.trim_end().ends_with("</VTKFile>"));
+}
+
+#[test]
+fn grid4_slack_matches_reference() {
+    let d = tmp("grid4");
+    let scene = reference_dir().join("grid4-slack.toml");
+    let reference: Value = read_json(&reference_dir().join("grid4-slack.ref.json"));
+    // The scene's own settings (direct), then the multilevel method.
+    let a = d.join("a.json");
+    ok(&nsdd(&["solve", s(&scene), "--out", s(&a)]));
+    assert_matches(&read_json(&a), &reference, 1e-6, "grid4-slack direct");
+    let b = d.join("b.json");
+    ok(&nsdd(&[
+        "solve",
+        s(&scene),
+        "--method",
+        "multilevel",
+        "--subdomains",
+        "4",
+        "--tolerance",
+        "1e-10",
+        "--out",
+        s(&b),
+    ]));
+    let rb = read_json(&b);
+    assert_result_fields(&rb);
+    assert_matches(&rb, &reference, 1e-6, "grid4-slack multilevel");
+}
+
+fn write_scene(dir: &Path, name: &str, body: &str) -> PathBuf {
+    let p = dir.join(name);
+    std::fs::write(&p, body).unwrap();
+    p
+}
+
+const TWO_BARS: &str = r#"
+[nodes]
+x = [0.0, 1.0, 2.0]
+y = [0.0, 0.0, 0.0]
+z = [0.0, 0.0, 0.0]
+[elements]
+a = [0, 1]
+b = [1, 2]
+kind = ["bar", "cable"]
+ea = [100.0, EA1]
+[supports]
+node = [0, 1, 2]
+dofs = [SUPPORTS]
+[loads]
+node = [1]
+fx = [1.0]
+"#;
+
+#[test]
+fn bad_scene_fails_naming_field_and_index_without_output() {
+    let d = tmp("bad");
+    let scene = write_scene(
+        &d,
+        "bad.toml",
+        &TWO_BARS
+            .replace("EA1", "-5.0")
+            .replace("SUPPORTS", r#""xyz", "yz", "xyz""#),
+    );
+    let res = d.join("r.json");
+    let out = nsdd(&["solve", s(&scene), "--out", s(&res)]);
+    assert_eq!(out.status.code(), Some(2), "stderr: {}", text(&out.stderr));
+    let err = text(&out.stderr);
+    assert!(
+        err.contains("elements.ea") && err.contains("[1]"),
+        "message does not name elements.ea[1]: {err}"
+    );
+    assert!(!res.exists(), "a result file was written for a bad scene");
+
+    // Unparsable file and missing file: bad input too.
+    let junk = write_scene(&d, "junk.toml", "[nodes\nx = ");
+    let out = nsdd(&["solve", s(&junk), "--out", s(&res)]);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(text(&out.stderr).contains("cannot parse"));
+    let out = nsdd(&["solve", s(&d.join("missing.toml")), "--out", s(&res)]);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(!res.exists());
+}
+
+#[test]
+fn unsupported_structure_fails_naming_the_cause() {
+    let d = tmp("mech");
+    // Node 1 is free along x but node 2 is free in y and z: a mechanism.
+    let scene = write_scene(
+        &d,
+        "mech.toml",
+        &TWO_BARS
+            .replace("EA1", "50.0")
+            .replace("SUPPORTS", r#""xyz", "yz", "x""#),
+    );
+    let res = d.join("r.json");
+    let out = nsdd(&["solve", s(&scene), "--out", s(&res)]);
+    assert_eq!(out.status.code(), Some(3), "stderr: {}", text(&out.stderr));
+    let err = text(&out.stderr);
+    assert!(err.contains("no unique solution"), "cause not named: {err}");
+    assert!(!res.exists());
+
+    // Monolevel on a decomposition with floating subdomains.
+    let grid = root().join("scenes/grid-8x8.toml");
+    let out = nsdd(&[
+        "solve",
+        s(&grid),
+        "--method",
+        "monolevel",
+        "--subdomains",
+        "4",
+        "--out",
+        s(&res),
+    ]);
+    assert_eq!(out.status.code(), Some(3));
+    assert!(
+        text(&out.stderr).contains("method not applicable"),
+        "{}",
+        text(&out.stderr)
+    );
+    assert!(!res.exists());
+}
+
+#[test]
+fn unconverged_solve_writes_result_and_exits_5() {
+    let d = tmp("unconverged");
+    let grid = root().join("scenes/grid-8x8.toml");
+    let res = d.join("r.json");
+    let out = nsdd(&["solve", s(&grid), "--max-iterations", "3", "--out", s(&res)]);
+    assert_eq!(out.status.code(), Some(5));
+    assert!(text(&out.stderr).contains("not converged"));
+    let r = read_json(&res);
+    assert_eq!(r["converged"], false);
+    assert_eq!(r["iterations"], 3);
+}
+
+#[test]
+fn gen_round_trip_and_help() {
+    let d = tmp("gen");
+    let toml = d.join("g.toml");
+    let out = nsdd(&["gen", "grid", "nx=3", "ny=3", "--out", s(&toml)]);
+    ok(&out);
+    let res = d.join("g.json");
+    ok(&nsdd(&["solve", s(&toml), "--out", s(&res)]));
+    let r = read_json(&res);
+    assert_eq!(r["displacements"].as_array().unwrap().len(), 16 + 9);
+    // JSON by extension, solved with both methods. Prestressed, so that no
+    // cable sits exactly at zero tension and zero elongation (there the
+    // slack flag is a coin toss between methods).
+    let json = d.join("scene.json");
+    ok(&nsdd(&["gen", "grid", "nx=3", "ny=3", "t0=0.1", "--out", s(&json)]));
+    let res1 = d.join("g1.json");
+    ok(&nsdd(&["solve", s(&json), "--method", "direct", "--out", s(&res1)]));
+    let r = read_json(&res1);
+    let sc = read_json(&json);
+    assert!(sc["nodes"]["x"].is_array());
+    let res2 = d.join("g2.json");
+    ok(&nsdd(&[
+        "solve",
+        s(&json),
+        "--method",
+        "multilevel",
+        "--subdomains",
+        "2",
+        "--tolerance",
+        "1e-10",
+        "--out",
+        s(&res2),
+    ]));
+    assert_matches(&read_json(&res2), &r, 1e-6, "generated grid multilevel vs direct");
+
+    let help = text(&nsdd(&["gen", "--help"]).stdout);
+    for word in ["grid", "tensegrity", "tower", "nx", "ea_cable"] {
+        assert!(help.contains(word), "gen --help lacks '{word}':\n{help}");
+    }
+    let out = nsdd(&["gen", "grid", "nq=3", "--out", s(&d.join("x.toml"))]);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(text(&out.stderr).contains("nq"));
+    let out = nsdd(&["gen", "dome"]);
+    assert_eq!(out.status.code(), Some(2));
+}
+
+#[test]
+fn load_path_writes_pvd_series() {
+    let d = tmp("loadpath");
+    let toml = d.join("g.toml");
+    ok(&nsdd(&["gen", "grid", "nx=2", "ny=2", "--out", s(&toml)]));
+    let mut t = std::fs::read_to_string(&toml).unwrap();
+    t.push_str("\n[load_path]\nsteps = 3\n");
+    std::fs::write(&toml, t).unwrap();
+    let vtu = d.join("res.vtu");
+    ok(&nsdd(&["solve", s(&toml), "--vtk", s(&vtu)]));
+    assert!(vtu.exists());
+    let pvd = std::fs::read_to_string(d.join("res.pvd")).unwrap();
+    for k in 1..=3 {
+        let name = format!("res-step{k:03}.vtu");
+        assert!(pvd.contains(&name), "pvd lacks {name}");
+        assert!(d.join(&name).exists());
+    }
+}
+
+#[test]
+fn partition_reports_quality_and_kernels() {
+    let grid = root().join("scenes/grid-8x8.toml");
+    let out = nsdd(&["partition", s(&grid), "--subdomains", "4", "--json"]);
+    ok(&out);
+    let v: Value = serde_json::from_str(&text(&out.stdout)).unwrap();
+    assert_eq!(v["quality"]["subdomains"], 4);
+    assert!(v["quality"]["interfaces"].as_u64().unwrap() > 0);
+    assert_eq!(v["subdomains"].as_array().unwrap().len(), 4);
+    assert!(!v["singular"].as_array().unwrap().is_empty());
+    let out = nsdd(&["partition", s(&grid)]);
+    ok(&out);
+    assert!(text(&out.stdout).contains("singular subdomains"));
+}
+
+fn csv_rows(p: &Path) -> (String, Vec<Vec<String>>) {
+    let t = std::fs::read_to_string(p).unwrap();
+    let mut lines = t.lines();
+    let header = lines.next().unwrap().to_string();
+    (
+        header,
+        lines.map(|l| l.split(',').map(String::from).collect()).collect(),
+    )
+}
+
+#[test]
+fn accuracy_study_writes_csv_and_svgs() {
+    let d = tmp("accuracy");
+    let toml = d.join("g.toml");
+    ok(&nsdd(&["gen", "grid", "nx=4", "ny=4", "t0=0.1", "--out", s(&toml)]));
+    let out_dir = d.join("acc");
+    let out = nsdd(&[
+        "accuracy",
+        s(&toml),
+        "--out",
+        s(&out_dir),
+        "--subdomains",
+        "2",
+        "--samples",
+        "8",
+    ]);
+    ok(&out);
+    let (header, rows) = csv_rows(&out_dir.join("accuracy.csv"));
+    assert!(
+        header.starts_with("method,tolerance,error_u,error_t,slack_mismatch,iterations,seconds"),
+        "header: {header}"
+    );
+    assert_eq!(rows.iter().filter(|r| r[0] == "direct").count(), 1);
+    let ml: Vec<&Vec<String>> = rows.iter().filter(|r| r[0] == "multilevel").collect();
+    assert_eq!(ml.len(), 9, "one multilevel row per decade 1e-2..1e-10");
+    let err = |tol: &str| {
+        let r = ml
+            .iter()
+            .find(|r| r[1].parse::<f64>().unwrap() == tol.parse::<f64>().unwrap())
+            .unwrap();
+        r[2].parse::<f64>().unwrap().max(r[3].parse::<f64>().unwrap())
+    };
+    assert!(
+        err("1e-10") < err("1e-2"),
+        "error does not decrease: {} vs {}",
+        err("1e-10"),
+        err("1e-2")
+    );
+    assert!(err("1e-10") < 1e-6);
+    for r in &ml {
+        assert!(r[6].parse::<f64>().unwrap() > 0.0);
+    }
+    assert_svg(&out_dir.join("accuracy.svg"));
+    let (hh, hrows) = csv_rows(&out_dir.join("history-multilevel.csv"));
+    assert!(hh.starts_with("iteration,time_s,indicator,error_u"));
+    let sampled: Vec<f64> = hrows
+        .iter()
+        .filter(|r| !r[3].is_empty())
+        .map(|r| r[3].parse().unwrap())
+        .collect();
+    assert!(sampled.len() >= 3 && sampled.len() <= 8, "{} samples", sampled.len());
+    assert!(sampled.last().unwrap() < sampled.first().unwrap());
+    assert_svg(&out_dir.join("history-multilevel.svg"));
+    // Monolevel refuses these floating subdomains: a note, no rows.
+    assert!(text(&out.stdout).contains("monolevel skipped"));
+}
+
+#[test]
+fn scaling_study_writes_csv_and_svg() {
+    let d = tmp("scaling");
+    let out = nsdd(&[
+        "scaling",
+        "--sizes",
+        "2,4",
+        "--subdomains",
+        "2,4",
+        "--tolerance",
+        "1e-6",
+        "--out",
+        s(&d),
+    ]);
+    ok(&out);
+    let (header, rows) = csv_rows(&d.join("scaling.csv"));
+    assert!(header.starts_with("study,size,subdomains,method"), "{header}");
+    let ml: Vec<&Vec<String>> = rows.iter().filter(|r| r[3] == "multilevel").collect();
+    assert_eq!(ml.iter().filter(|r| r[0] == "strong").count(), 2);
+    assert_eq!(ml.iter().filter(|r| r[0] == "weak").count(), 2);
+    assert!(ml.iter().all(|r| r[6].parse::<usize>().unwrap() > 0 && r[7] == "true"));
+    // Monolevel rows exist: run, or skipped with a reason.
+    assert!(rows
+        .iter()
+        .filter(|r| r[3] == "monolevel")
+        .all(|r| !r[6].is_empty() || r.len() > 12 && !r[12].is_empty()));
+    assert_svg(&d.join("scaling.svg"));
+}
