@@ -1,5 +1,6 @@
 //! nsdd: multilevel domain decomposition for nonsmooth discrete structures.
 pub mod error;
+pub mod capi;
 pub mod coarse;
 pub mod dd;
 pub mod decomposition;

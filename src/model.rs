@@ -298,6 +298,38 @@ impl Model {
         t
     }
 
+    /// Slack flag per element: a cable is slack when its slack `λ` exceeds
+    /// `rel` times the largest displacement. The threshold keeps cables at
+    /// zero strain (a structural zero, where `λ` is round-off of either
+    /// sign) from flipping between methods; their tension is 0 either way.
+    pub fn slack_flags(&self, u: &[f64], lambda: &[f64], rel: f64) -> Vec<bool> {
+        let scale = u.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        let tau = rel * scale;
+        let mut slack = vec![false; self.elements.len()];
+        for (c, &e) in self.cables.iter().enumerate() {
+            slack[e] = lambda[c] > tau;
+        }
+        slack
+    }
+
+    /// Tensions from displacements and slack flags: a slack cable reports
+    /// exactly 0, a taut cable never pushes.
+    pub fn tensions_with_slack(&self, u: &[f64], slack: &[bool]) -> Vec<f64> {
+        (0..self.elements.len())
+            .map(|e| {
+                let el = &self.elements[e];
+                let t = el.k * (self.elongation(e, u) + el.e0);
+                if !el.unilateral {
+                    t
+                } else if slack[e] {
+                    0.0
+                } else {
+                    t.max(0.0)
+                }
+            })
+            .collect()
+    }
+
     /// Tensions from displacements and cable slacks (λ indexed like `cables`).
     /// A slack cable reports exactly 0.
     pub fn tensions(&self, u: &[f64], lambda: &[f64]) -> Vec<f64> {

@@ -165,19 +165,25 @@ impl Prepared {
     }
 }
 
-fn case_result(model: &Model, name: &str, load_factor: f64, st: &State) -> CaseResult {
-    let eq = &st.equilibrium;
-    let mut slack = vec![false; model.elements.len()];
-    for (c, &e) in model.cables.iter().enumerate() {
-        slack[e] = eq.lambda[c] > 0.0;
+/// Relative slack threshold of a method: round-off for the direct solver,
+/// ten times the tolerance for the iterative ones.
+fn slack_threshold(opts: &SolveOptions) -> f64 {
+    match opts.method {
+        Method::Direct => 1e-12,
+        _ => 10.0 * opts.tolerance,
     }
+}
+
+fn case_result(model: &Model, name: &str, load_factor: f64, st: &State, slack_rel: f64) -> CaseResult {
+    let eq = &st.equilibrium;
+    let slack = model.slack_flags(&eq.u, &eq.lambda, slack_rel);
     CaseResult {
         name: name.to_string(),
         load_factor,
         converged: st.converged,
         iterations: eq.iterations,
         displacements: model.node_displacements(&eq.u),
-        tensions: model.tensions(&eq.u, &eq.lambda),
+        tensions: model.tensions_with_slack(&eq.u, &slack),
         slack,
     }
 }
@@ -203,7 +209,7 @@ pub fn solve_with_progress(scene: &Scene, opts: &SolveOptions, mut progress: Pro
             let factor = path.final_factor * k as f64 / path.steps as f64;
             let f: Vec<f64> = model.load_cases[0].iter().map(|v| v * factor).collect();
             let st = prepared.solve(&model, &f, k > 1, progress.as_deref_mut().map(|p| p as &mut dyn FnMut(usize, f64)))?;
-            steps.push(case_result(&model, &format!("step {k}"), factor, &st));
+            steps.push(case_result(&model, &format!("step {k}"), factor, &st, slack_threshold(opts)));
             top = Some(st);
         }
     } else {
@@ -212,10 +218,10 @@ pub fn solve_with_progress(scene: &Scene, opts: &SolveOptions, mut progress: Pro
     let mut load_cases = Vec::new();
     for c in 1..model.load_cases.len() {
         let st = prepared.solve(&model, &model.load_cases[c], false, None)?;
-        load_cases.push(case_result(&model, &model.load_case_names[c], 1.0, &st));
+        load_cases.push(case_result(&model, &model.load_case_names[c], 1.0, &st, slack_threshold(opts)));
     }
     let top = top.expect("at least one solve");
-    let main = case_result(&model, "loads", 1.0, &top);
+    let main = case_result(&model, "loads", 1.0, &top, slack_threshold(opts));
     let (n_sub, element_subdomain, d) = match &prepared {
         Prepared::Direct(_) => (1, Vec::new(), None),
         Prepared::Dd(dd, dec) => (dec.len(), dec.partition.part_of.clone(), Some(dd.search_direction())),

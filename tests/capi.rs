@@ -1,0 +1,1492 @@
+//! Tests of the C ABI (`nsdd::capi`), calling the exported functions
+//! directly: every bad-argument path (NULL pointers, wrong lengths,
+//! out-of-range indices, invalid scenes, unsolvable structures), the panic
+//! guard, and bit-for-bit agreement with the Rust API at both levels.
+//!
+//! The C and C++ examples (`c_examples/`) are not built by default here: run
+//! them with `make -C c_examples run` / `make -C c_examples valgrind`, or with
+//! `cargo test --release --test capi -- --ignored c_examples` (skipped when no
+//! C compiler is found).
+
+use nsdd::capi::*;
+use nsdd::dd::{DdOptions, DdProblem, DdSolver, NO_DOF};
+use nsdd::model::Model;
+use nsdd::scene::{Method, Scene};
+use nsdd::solve::{decompose, solve, SolveOptions};
+use std::ffi::{c_char, CStr, CString};
+use std::path::PathBuf;
+use std::ptr::{null, null_mut};
+
+fn root() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+}
+
+fn cstr(s: &str) -> CString {
+    CString::new(s).unwrap()
+}
+
+fn last_error() -> String {
+    unsafe {
+        let n = nsdd_last_error_message(null_mut(), 0);
+        let mut buf = vec![0 as c_char; n];
+        assert_eq!(nsdd_last_error_message(buf.as_mut_ptr(), n), n);
+        CStr::from_ptr(buf.as_ptr()).to_str().unwrap().to_string()
+    }
+}
+
+/// Asserts the status and that the last error mentions `needle`.
+#[track_caller]
+fn expect_err(st: NsddStatus, want: NsddStatus, needle: &str) {
+    assert_eq!(st, want, "last error: {}", last_error());
+    let msg = last_error();
+    assert!(msg.contains(needle), "message {msg:?} does not mention {needle:?}");
+}
+
+#[track_caller]
+fn ok(st: NsddStatus) {
+    assert_eq!(st, NsddStatus::Ok, "{}", last_error());
+}
+
+/// The symmetric two-bar truss: nodes 0, 1 supported, node 2 loaded.
+fn truss_scene() -> *mut NsddScene {
+    let s = nsdd_scene_new();
+    assert!(!s.is_null());
+    unsafe {
+        ok(nsdd_scene_set_nodes(
+            s,
+            3,
+            [-1.0, 1.0, 0.0].as_ptr(),
+            [1.0, 1.0, 0.0].as_ptr(),
+            [0.0; 3].as_ptr(),
+        ));
+        ok(nsdd_scene_set_elements(
+            s,
+            2,
+            [0usize, 1].as_ptr(),
+            [2usize, 2].as_ptr(),
+            [0u8, 1].as_ptr(),
+            [1e3, 1e3].as_ptr(),
+            null(),
+        ));
+        ok(nsdd_scene_set_supports(
+            s,
+            3,
+            [0usize, 1, 2].as_ptr(),
+            [7u8, 7, 4].as_ptr(),
+        ));
+        ok(nsdd_scene_set_loads(
+            s,
+            1,
+            [2usize].as_ptr(),
+            [0.0].as_ptr(),
+            [-10.0].as_ptr(),
+            [0.0].as_ptr(),
+        ));
+        ok(nsdd_scene_set_effects(s, true, false, false, false));
+    }
+    s
+}
+
+fn solved_truss() -> *mut NsddResult {
+    let s = truss_scene();
+    let mut r = null_mut();
+    unsafe {
+        ok(nsdd_solve(s, null(), &mut r));
+        nsdd_scene_destroy(s);
+    }
+    r
+}
+
+#[test]
+fn version_and_status_names() {
+    let v = unsafe { CStr::from_ptr(nsdd_version()) };
+    assert_eq!(v.to_str().unwrap(), env!("CARGO_PKG_VERSION"));
+    let name = |s: i32| {
+        unsafe { CStr::from_ptr(nsdd_status_name(s)) }
+            .to_str()
+            .unwrap()
+            .to_string()
+    };
+    assert_eq!(name(NsddStatus::Ok as i32), "NSDD_STATUS_OK");
+    assert_eq!(name(NsddStatus::InvalidInput as i32), "NSDD_STATUS_INVALID_INPUT");
+    assert_eq!(name(NsddStatus::Panic as i32), "NSDD_STATUS_PANIC");
+    assert_eq!(name(99), "NSDD_STATUS_UNKNOWN");
+    assert_eq!(name(-1), "NSDD_STATUS_UNKNOWN");
+}
+
+#[test]
+fn last_error_is_per_thread_and_truncates() {
+    std::thread::spawn(|| {
+        // Fresh thread: empty message.
+        assert_eq!(unsafe { nsdd_last_error_message(null_mut(), 0) }, 1);
+        assert_eq!(last_error(), "");
+        let st = unsafe { nsdd_options_set_tolerance(null_mut(), 1.0) };
+        expect_err(st, NsddStatus::NullPointer, "options is NULL");
+        let full = last_error();
+        // Truncated copy, NUL-terminated, returns the full size.
+        let mut buf = [1 as c_char; 5];
+        let n = unsafe { nsdd_last_error_message(buf.as_mut_ptr(), buf.len()) };
+        assert_eq!(n, full.len() + 1);
+        assert_eq!(unsafe { CStr::from_ptr(buf.as_ptr()) }.to_str().unwrap(), &full[..4]);
+        // NULL buffer with a nonzero length is ignored.
+        assert_eq!(unsafe { nsdd_last_error_message(null_mut(), 10) }, n);
+        // A successful call leaves the message.
+        let o = nsdd_options_new();
+        ok(unsafe { nsdd_options_set_tolerance(o, 1e-6) });
+        assert_eq!(last_error(), full);
+        unsafe { nsdd_options_destroy(o) };
+        // Other threads do not see it.
+        std::thread::spawn(|| assert_eq!(last_error(), "")).join().unwrap();
+    })
+    .join()
+    .unwrap();
+}
+
+#[test]
+fn panics_are_caught() {
+    let st = ffi_guard(|| panic!("boom {}", 42));
+    expect_err(st, NsddStatus::Panic, "boom 42");
+    let st = ffi_guard(|| std::panic::panic_any(7u32));
+    expect_err(st, NsddStatus::Panic, "panic");
+}
+
+#[test]
+fn destroy_accepts_null() {
+    unsafe {
+        nsdd_scene_destroy(null_mut());
+        nsdd_options_destroy(null_mut());
+        nsdd_result_destroy(null_mut());
+        nsdd_alg_destroy(null_mut());
+    }
+}
+
+#[test]
+fn scene_setters_reject_bad_arguments() {
+    let s = nsdd_scene_new();
+    let (x, i, k) = ([0.0; 3].as_ptr(), [0usize; 3].as_ptr(), [0u8; 3].as_ptr());
+    unsafe {
+        // NULL handle for every setter.
+        expect_err(
+            nsdd_scene_set_nodes(null_mut(), 3, x, x, x),
+            NsddStatus::NullPointer,
+            "scene",
+        );
+        expect_err(
+            nsdd_scene_set_elements(null_mut(), 1, i, i, k, x, null()),
+            NsddStatus::NullPointer,
+            "scene",
+        );
+        expect_err(
+            nsdd_scene_set_supports(null_mut(), 1, i, k),
+            NsddStatus::NullPointer,
+            "scene",
+        );
+        expect_err(
+            nsdd_scene_set_loads(null_mut(), 1, i, x, x, x),
+            NsddStatus::NullPointer,
+            "scene",
+        );
+        expect_err(
+            nsdd_scene_set_effects(null_mut(), true, true, true, true),
+            NsddStatus::NullPointer,
+            "scene",
+        );
+        expect_err(
+            nsdd_scene_set_self_weight(null_mut(), 1, x, null()),
+            NsddStatus::NullPointer,
+            "scene",
+        );
+        expect_err(
+            nsdd_scene_set_name(null_mut(), c"n".as_ptr()),
+            NsddStatus::NullPointer,
+            "scene",
+        );
+        expect_err(nsdd_scene_set_name(s, null()), NsddStatus::NullPointer, "name");
+        expect_err(nsdd_scene_validate(null()), NsddStatus::NullPointer, "scene");
+        let mut n = 0usize;
+        expect_err(nsdd_scene_num_nodes(null(), &mut n), NsddStatus::NullPointer, "scene");
+        expect_err(nsdd_scene_num_nodes(s, null_mut()), NsddStatus::NullPointer, "out");
+        expect_err(
+            nsdd_scene_num_elements(null(), &mut n),
+            NsddStatus::NullPointer,
+            "scene",
+        );
+        expect_err(nsdd_scene_num_elements(s, null_mut()), NsddStatus::NullPointer, "out");
+        // NULL arrays with a nonzero length.
+        expect_err(
+            nsdd_scene_set_nodes(s, 3, x, null(), x),
+            NsddStatus::NullPointer,
+            "y is NULL",
+        );
+        expect_err(
+            nsdd_scene_set_elements(s, 1, i, i, null(), x, null()),
+            NsddStatus::NullPointer,
+            "kind",
+        );
+        expect_err(
+            nsdd_scene_set_elements(s, 1, i, i, k, null(), null()),
+            NsddStatus::NullPointer,
+            "ea",
+        );
+        expect_err(
+            nsdd_scene_set_elements(s, 1, null(), i, k, x, null()),
+            NsddStatus::NullPointer,
+            "a is NULL",
+        );
+        expect_err(
+            nsdd_scene_set_supports(s, 1, i, null()),
+            NsddStatus::NullPointer,
+            "mask",
+        );
+        expect_err(
+            nsdd_scene_set_loads(s, 1, i, x, x, null()),
+            NsddStatus::NullPointer,
+            "fz",
+        );
+        expect_err(
+            nsdd_scene_set_self_weight(s, 1, null(), null()),
+            NsddStatus::NullPointer,
+            "mass_per_length",
+        );
+        // ... but zero lengths accept NULL.
+        ok(nsdd_scene_set_loads(s, 0, null(), null(), null(), null()));
+        // Out-of-range values.
+        expect_err(
+            nsdd_scene_set_nodes(s, 2, [0.0, f64::NAN].as_ptr(), x, x),
+            NsddStatus::InvalidArgument,
+            "x[1] is not a finite number",
+        );
+        expect_err(
+            nsdd_scene_set_elements(s, 2, i, i, [1u8, 2].as_ptr(), x, null()),
+            NsddStatus::InvalidArgument,
+            "kind[1] = 2",
+        );
+        expect_err(
+            nsdd_scene_set_supports(s, 1, i, [0u8].as_ptr()),
+            NsddStatus::InvalidArgument,
+            "mask[0] = 0",
+        );
+        expect_err(
+            nsdd_scene_set_supports(s, 2, i, [1u8, 8].as_ptr()),
+            NsddStatus::InvalidArgument,
+            "mask[1] = 8",
+        );
+        // A misaligned array.
+        let raw = [0u64; 4];
+        let misaligned = (raw.as_ptr() as *const u8).add(1) as *const f64;
+        expect_err(
+            nsdd_scene_set_nodes(s, 1, misaligned, x, x),
+            NsddStatus::InvalidArgument,
+            "aligned",
+        );
+        nsdd_scene_destroy(s);
+    }
+}
+
+#[test]
+fn scene_loading_errors() {
+    unsafe {
+        let mut s = std::ptr::dangling_mut::<NsddScene>();
+        expect_err(
+            nsdd_scene_from_str(null(), false, &mut s),
+            NsddStatus::NullPointer,
+            "text",
+        );
+        assert!(s.is_null(), "*out is cleared on failure");
+        expect_err(
+            nsdd_scene_from_str(c"x".as_ptr(), false, null_mut()),
+            NsddStatus::NullPointer,
+            "out",
+        );
+        expect_err(
+            nsdd_scene_from_str(c"[nodes".as_ptr(), false, &mut s),
+            NsddStatus::ParseError,
+            "parse",
+        );
+        expect_err(
+            nsdd_scene_from_str(c"{".as_ptr(), true, &mut s),
+            NsddStatus::ParseError,
+            "parse",
+        );
+        let bad =
+            c"[nodes]\nx=[0.0,1.0]\ny=[0.0,0.0]\nz=[0.0,0.0]\n[elements]\na=[0]\nb=[1]\nkind=[\"bar\"]\nea=[-1.0]\n";
+        expect_err(
+            nsdd_scene_from_str(bad.as_ptr(), false, &mut s),
+            NsddStatus::InvalidInput,
+            "elements.ea[0]",
+        );
+        let bytes = [0xffu8, 0xfe, 0];
+        expect_err(
+            nsdd_scene_from_str(bytes.as_ptr().cast(), false, &mut s),
+            NsddStatus::InvalidArgument,
+            "UTF-8",
+        );
+        expect_err(nsdd_scene_from_file(null(), &mut s), NsddStatus::NullPointer, "path");
+        expect_err(
+            nsdd_scene_from_file(c"/nonexistent/scene.toml".as_ptr(), &mut s),
+            NsddStatus::IoError,
+            "nonexistent",
+        );
+        let path = cstr(root().join("scenes/grid-4x4-linear.toml").to_str().unwrap());
+        expect_err(
+            nsdd_scene_from_file(path.as_ptr(), null_mut()),
+            NsddStatus::NullPointer,
+            "out",
+        );
+        ok(nsdd_scene_from_file(path.as_ptr(), &mut s));
+        let mut n = 0;
+        ok(nsdd_scene_num_nodes(s, &mut n));
+        assert!(n > 0);
+        nsdd_scene_destroy(s);
+    }
+}
+
+#[test]
+fn invalid_scenes_name_the_field() {
+    unsafe {
+        let s = truss_scene();
+        let mut r = null_mut();
+        // Element end out of range: only the validation knows the node count.
+        ok(nsdd_scene_set_elements(
+            s,
+            2,
+            [0usize, 1].as_ptr(),
+            [2usize, 5].as_ptr(),
+            [0u8, 1].as_ptr(),
+            [1e3, 1e3].as_ptr(),
+            null(),
+        ));
+        expect_err(nsdd_scene_validate(s), NsddStatus::InvalidInput, "elements.b[1]");
+        expect_err(nsdd_solve(s, null(), &mut r), NsddStatus::InvalidInput, "elements.b[1]");
+        assert!(r.is_null());
+        // Wrong prestress length is impossible through the setter; negative EA is not.
+        ok(nsdd_scene_set_elements(
+            s,
+            2,
+            [0usize, 1].as_ptr(),
+            [2usize, 2].as_ptr(),
+            [0u8, 1].as_ptr(),
+            [1e3, -2.0].as_ptr(),
+            null(),
+        ));
+        expect_err(
+            nsdd_solve(s, null(), &mut r),
+            NsddStatus::InvalidInput,
+            "elements.ea[1]",
+        );
+        ok(nsdd_scene_set_elements(
+            s,
+            2,
+            [0usize, 1].as_ptr(),
+            [2usize, 2].as_ptr(),
+            [0u8, 1].as_ptr(),
+            [1e3, 1e3].as_ptr(),
+            null(),
+        ));
+        // Load on a missing node.
+        ok(nsdd_scene_set_loads(
+            s,
+            1,
+            [9usize].as_ptr(),
+            [0.0].as_ptr(),
+            [1.0].as_ptr(),
+            [0.0].as_ptr(),
+        ));
+        expect_err(nsdd_solve(s, null(), &mut r), NsddStatus::InvalidInput, "loads.node[0]");
+        ok(nsdd_scene_set_loads(
+            s,
+            1,
+            [2usize].as_ptr(),
+            [0.0].as_ptr(),
+            [-1.0].as_ptr(),
+            [0.0].as_ptr(),
+        ));
+        // Self-weight without masses.
+        ok(nsdd_scene_set_effects(s, true, false, false, true));
+        expect_err(
+            nsdd_solve(s, null(), &mut r),
+            NsddStatus::InvalidInput,
+            "elements.mass_per_length",
+        );
+        ok(nsdd_scene_set_self_weight(
+            s,
+            2,
+            [1.0, 1.0].as_ptr(),
+            [0.0, 0.0, -9.81].as_ptr(),
+        ));
+        ok(nsdd_solve(s, null(), &mut r));
+        nsdd_result_destroy(r);
+        ok(nsdd_scene_set_effects(s, true, false, false, false));
+        ok(nsdd_scene_validate(s));
+        // An empty scene.
+        let e = nsdd_scene_new();
+        expect_err(nsdd_solve(e, null(), &mut r), NsddStatus::InvalidInput, "nodes.x");
+        nsdd_scene_destroy(e);
+        // NULL scene / out.
+        expect_err(nsdd_solve(null(), null(), &mut r), NsddStatus::NullPointer, "scene");
+        expect_err(nsdd_solve(s, null(), null_mut()), NsddStatus::NullPointer, "out_result");
+        nsdd_scene_destroy(s);
+    }
+}
+
+#[test]
+fn unsolvable_structures() {
+    unsafe {
+        // Node 2 unsupported in z: a mechanism.
+        let s = truss_scene();
+        ok(nsdd_scene_set_supports(s, 2, [0usize, 1].as_ptr(), [7u8, 7].as_ptr()));
+        let mut r = null_mut();
+        expect_err(nsdd_solve(s, null(), &mut r), NsddStatus::Mechanism, "");
+        assert!(r.is_null());
+        // Pushed up, the cable goes slack and the bar alone is a mechanism.
+        ok(nsdd_scene_set_supports(
+            s,
+            3,
+            [0usize, 1, 2].as_ptr(),
+            [7u8, 7, 4].as_ptr(),
+        ));
+        ok(nsdd_scene_set_loads(
+            s,
+            1,
+            [2usize].as_ptr(),
+            [0.0].as_ptr(),
+            [10.0].as_ptr(),
+            [0.0].as_ptr(),
+        ));
+        expect_err(nsdd_solve(s, null(), &mut r), NsddStatus::Mechanism, "");
+        nsdd_scene_destroy(s);
+
+        // Monolevel with a floating subdomain: the grid is cut into pieces
+        // that cannot all be supported.
+        let path = cstr(root().join("scenes/grid-8x8.toml").to_str().unwrap());
+        let mut g = null_mut();
+        ok(nsdd_scene_from_file(path.as_ptr(), &mut g));
+        let o = nsdd_options_new();
+        ok(nsdd_options_set_method(o, NsddMethod::Monolevel as u32));
+        ok(nsdd_options_set_subdomains(o, 4));
+        let st = nsdd_solve(g, o, &mut r);
+        if st == NsddStatus::Ok {
+            nsdd_result_destroy(r); // every part happened to be supported
+        } else {
+            expect_err(st, NsddStatus::MethodNotApplicable, "monolevel");
+        }
+        nsdd_options_destroy(o);
+        nsdd_scene_destroy(g);
+    }
+}
+
+#[test]
+fn options_reject_bad_values() {
+    unsafe {
+        let o = nsdd_options_new();
+        assert!(!o.is_null());
+        expect_err(
+            nsdd_options_set_method(null_mut(), 0),
+            NsddStatus::NullPointer,
+            "options",
+        );
+        expect_err(nsdd_options_set_method(o, 3), NsddStatus::InvalidArgument, "method = 3");
+        expect_err(
+            nsdd_options_set_subdomains(null_mut(), 1),
+            NsddStatus::NullPointer,
+            "options",
+        );
+        expect_err(
+            nsdd_options_set_subdomains(o, 0),
+            NsddStatus::InvalidArgument,
+            "subdomains",
+        );
+        expect_err(
+            nsdd_options_set_tolerance(null_mut(), 1.0),
+            NsddStatus::NullPointer,
+            "options",
+        );
+        expect_err(
+            nsdd_options_set_tolerance(o, 0.0),
+            NsddStatus::InvalidArgument,
+            "tolerance",
+        );
+        expect_err(
+            nsdd_options_set_tolerance(o, f64::NAN),
+            NsddStatus::InvalidArgument,
+            "tolerance",
+        );
+        expect_err(
+            nsdd_options_set_tolerance(o, f64::INFINITY),
+            NsddStatus::InvalidArgument,
+            "tolerance",
+        );
+        expect_err(
+            nsdd_options_set_max_iterations(null_mut(), 1),
+            NsddStatus::NullPointer,
+            "options",
+        );
+        expect_err(
+            nsdd_options_set_max_iterations(o, 0),
+            NsddStatus::InvalidArgument,
+            "max_iterations",
+        );
+        expect_err(
+            nsdd_options_set_search_direction(null_mut(), 1.0),
+            NsddStatus::NullPointer,
+            "options",
+        );
+        expect_err(
+            nsdd_options_set_search_direction(o, f64::NAN),
+            NsddStatus::InvalidArgument,
+            "search direction",
+        );
+        ok(nsdd_options_set_search_direction(o, 0.0)); // auto
+        ok(nsdd_options_set_search_direction(o, 0.5));
+        let mut out = std::ptr::dangling_mut::<NsddOptions>();
+        expect_err(
+            nsdd_options_from_scene(null(), &mut out),
+            NsddStatus::NullPointer,
+            "scene",
+        );
+        assert!(out.is_null());
+        let s = truss_scene();
+        expect_err(nsdd_options_from_scene(s, null_mut()), NsddStatus::NullPointer, "out");
+        ok(nsdd_options_from_scene(s, &mut out));
+        nsdd_options_destroy(out);
+        nsdd_scene_destroy(s);
+        nsdd_options_destroy(o);
+    }
+}
+
+#[test]
+fn result_getters_check_lengths() {
+    let r = solved_truss();
+    unsafe {
+        let (mut nn, mut ne, mut hl, mut it) = (0usize, 0usize, 0usize, 0usize);
+        let mut conv = false;
+        ok(nsdd_result_num_nodes(r, &mut nn));
+        ok(nsdd_result_num_elements(r, &mut ne));
+        ok(nsdd_result_history_len(r, &mut hl));
+        ok(nsdd_result_iterations(r, &mut it));
+        ok(nsdd_result_converged(r, &mut conv));
+        assert_eq!((nn, ne), (3, 2));
+        assert!(conv && hl >= 1);
+        for st in [
+            nsdd_result_num_nodes(null(), &mut nn),
+            nsdd_result_num_elements(null(), &mut ne),
+            nsdd_result_history_len(null(), &mut hl),
+            nsdd_result_iterations(null(), &mut it),
+            nsdd_result_converged(null(), &mut conv),
+        ] {
+            expect_err(st, NsddStatus::NullPointer, "result");
+        }
+        for st in [
+            nsdd_result_num_nodes(r, null_mut()),
+            nsdd_result_num_elements(r, null_mut()),
+            nsdd_result_history_len(r, null_mut()),
+            nsdd_result_iterations(r, null_mut()),
+            nsdd_result_converged(r, null_mut()),
+        ] {
+            expect_err(st, NsddStatus::NullPointer, "out");
+        }
+        let mut u = vec![7.0; 3 * nn + 1];
+        expect_err(
+            nsdd_result_displacements(r, u.as_mut_ptr(), 3 * nn + 1),
+            NsddStatus::InvalidArgument,
+            "expected 9",
+        );
+        expect_err(
+            nsdd_result_displacements(r, u.as_mut_ptr(), nn),
+            NsddStatus::InvalidArgument,
+            "3 * num_nodes",
+        );
+        assert!(u.iter().all(|&v| v == 7.0), "nothing written on failure");
+        expect_err(
+            nsdd_result_displacements(r, null_mut(), 3 * nn),
+            NsddStatus::NullPointer,
+            "out",
+        );
+        expect_err(
+            nsdd_result_displacements(null(), u.as_mut_ptr(), 3 * nn),
+            NsddStatus::NullPointer,
+            "result",
+        );
+        ok(nsdd_result_displacements(r, u.as_mut_ptr(), 3 * nn));
+        let mut t = vec![0.0; ne + 1];
+        expect_err(
+            nsdd_result_tensions(r, t.as_mut_ptr(), ne + 1),
+            NsddStatus::InvalidArgument,
+            "num_elements",
+        );
+        expect_err(nsdd_result_tensions(r, null_mut(), ne), NsddStatus::NullPointer, "out");
+        expect_err(
+            nsdd_result_tensions(null(), t.as_mut_ptr(), ne),
+            NsddStatus::NullPointer,
+            "result",
+        );
+        ok(nsdd_result_tensions(r, t.as_mut_ptr(), ne));
+        let mut sl = vec![9u8; ne + 1];
+        expect_err(
+            nsdd_result_slack(r, sl.as_mut_ptr(), 0),
+            NsddStatus::InvalidArgument,
+            "num_elements",
+        );
+        expect_err(nsdd_result_slack(r, null_mut(), ne), NsddStatus::NullPointer, "out");
+        expect_err(
+            nsdd_result_slack(null(), sl.as_mut_ptr(), ne),
+            NsddStatus::NullPointer,
+            "result",
+        );
+        ok(nsdd_result_slack(r, sl.as_mut_ptr(), ne));
+        assert_eq!(&sl[..ne], &[0, 0]);
+        let (mut ind, mut ts) = (vec![0.0; hl + 1], vec![0.0; hl + 1]);
+        expect_err(
+            nsdd_result_history(r, ind.as_mut_ptr(), ts.as_mut_ptr(), hl + 1),
+            NsddStatus::InvalidArgument,
+            "history_len",
+        );
+        expect_err(
+            nsdd_result_history(null(), ind.as_mut_ptr(), ts.as_mut_ptr(), hl),
+            NsddStatus::NullPointer,
+            "result",
+        );
+        ok(nsdd_result_history(r, ind.as_mut_ptr(), null_mut(), hl));
+        ok(nsdd_result_history(r, null_mut(), ts.as_mut_ptr(), hl));
+        // Analytic two-bar truss: u_y = -P L / (2 EA sin²45), T = P / (2 sin45).
+        let (p, ea, l) = (10.0, 1e3, 2f64.sqrt());
+        assert!((u[7] + p * l / ea).abs() < 1e-12);
+        assert!((t[0] - p / 2f64.sqrt()).abs() < 1e-10);
+        // JSON output.
+        let dir = std::env::temp_dir().join(format!("nsdd-capi-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let file = dir.join("result.json");
+        let cfile = cstr(file.to_str().unwrap());
+        ok(nsdd_result_write_json(r, cfile.as_ptr()));
+        let back: nsdd::result::SolveResult = serde_json::from_str(&std::fs::read_to_string(&file).unwrap()).unwrap();
+        assert_eq!(back.tensions.len(), 2);
+        std::fs::remove_dir_all(&dir).unwrap();
+        let bad = cstr("/nonexistent-dir/result.json");
+        expect_err(
+            nsdd_result_write_json(r, bad.as_ptr()),
+            NsddStatus::IoError,
+            "nonexistent-dir",
+        );
+        expect_err(nsdd_result_write_json(r, null()), NsddStatus::NullPointer, "path");
+        expect_err(
+            nsdd_result_write_json(null(), cfile.as_ptr()),
+            NsddStatus::NullPointer,
+            "result",
+        );
+        nsdd_result_destroy(r);
+    }
+}
+
+fn bits(v: &[f64]) -> Vec<u64> {
+    v.iter().map(|x| x.to_bits()).collect()
+}
+
+#[test]
+fn scene_results_match_rust_api_bit_for_bit() {
+    let path = root().join("scenes/grid-8x8.toml");
+    let scene = Scene::load(&path).unwrap();
+    let opts = SolveOptions::from_scene(&scene);
+    assert_eq!((opts.method, opts.subdomains), (Method::Multilevel, 4));
+    let rust = solve(&scene, &opts).unwrap();
+    unsafe {
+        let cpath = cstr(path.to_str().unwrap());
+        let mut s = null_mut();
+        ok(nsdd_scene_from_file(cpath.as_ptr(), &mut s));
+        // Once with the scene's settings, once with explicit options.
+        let o = nsdd_options_new();
+        ok(nsdd_options_set_method(o, NsddMethod::Multilevel as u32));
+        ok(nsdd_options_set_subdomains(o, 4));
+        for options in [null(), o as *const NsddOptions] {
+            let mut r = null_mut();
+            ok(nsdd_solve(s, options, &mut r));
+            let (mut nn, mut ne, mut it, mut hl) = (0, 0, 0, 0);
+            let mut conv = false;
+            ok(nsdd_result_num_nodes(r, &mut nn));
+            ok(nsdd_result_num_elements(r, &mut ne));
+            ok(nsdd_result_iterations(r, &mut it));
+            ok(nsdd_result_converged(r, &mut conv));
+            ok(nsdd_result_history_len(r, &mut hl));
+            let mut u = vec![0.0; 3 * nn];
+            let mut t = vec![0.0; ne];
+            let mut sl = vec![0u8; ne];
+            let mut ind = vec![0.0; hl];
+            ok(nsdd_result_displacements(r, u.as_mut_ptr(), u.len()));
+            ok(nsdd_result_tensions(r, t.as_mut_ptr(), ne));
+            ok(nsdd_result_slack(r, sl.as_mut_ptr(), ne));
+            ok(nsdd_result_history(r, ind.as_mut_ptr(), null_mut(), hl));
+            let ru: Vec<f64> = rust.displacements.iter().flatten().copied().collect();
+            assert_eq!(bits(&u), bits(&ru));
+            assert_eq!(bits(&t), bits(&rust.tensions));
+            assert_eq!(sl, rust.slack.iter().map(|&b| b as u8).collect::<Vec<_>>());
+            assert_eq!(
+                bits(&ind),
+                bits(&rust.history.iter().map(|h| h.indicator).collect::<Vec<_>>())
+            );
+            assert_eq!((it, conv), (rust.iterations, rust.converged));
+            assert!(rust.slack.iter().any(|&b| b), "the grid has slack cables");
+            nsdd_result_destroy(r);
+        }
+        nsdd_options_destroy(o);
+        nsdd_scene_destroy(s);
+    }
+}
+
+/// Full symmetric CSR of a lower-triangular CSC matrix.
+fn full_csr(lower: &faer::sparse::SparseColMat<usize, f64>) -> (Vec<usize>, Vec<usize>, Vec<f64>) {
+    let a = lower.as_ref();
+    let n = a.nrows();
+    let mut rows: Vec<Vec<(usize, f64)>> = vec![Vec::new(); n];
+    for j in 0..a.ncols() {
+        for (i, &v) in a.row_idx_of_col(j).zip(a.val_of_col(j)) {
+            rows[i].push((j, v));
+            if i != j {
+                rows[j].push((i, v));
+            }
+        }
+    }
+    let (mut rp, mut ci, mut va) = (vec![0], Vec::new(), Vec::new());
+    for r in rows.iter_mut() {
+        r.sort_by_key(|e| e.0);
+        for &(c, v) in r.iter() {
+            ci.push(c);
+            va.push(v);
+        }
+        rp.push(ci.len());
+    }
+    (rp, ci, va)
+}
+
+/// Builds the algebraic problem of a bundled scene through the C ABI, from
+/// the subdomain matrices the Rust truss path assembles. Returns the handle
+/// and, per subdomain, its global dofs and constant (prestrain) load.
+fn algebraic_from_scene(file: &str, ns: usize) -> (Model, nsdd::decomposition::Decomposition, *mut NsddAlgebraic) {
+    let scene = Scene::load(&root().join("scenes").join(file)).unwrap();
+    let model = Model::from_scene(&scene).unwrap();
+    let dec = decompose(&model, &scene, ns).unwrap();
+    let problem = DdProblem::from_model(&model, &dec).unwrap();
+    let mut h = null_mut();
+    unsafe {
+        ok(nsdd_alg_new(ns, model.n_free, &mut h));
+        for (s, op) in problem.operators.iter().enumerate() {
+            let (rp, ci, va) = full_csr(&op.stiffness);
+            let l2g = &dec.subdomains[s].dofs;
+            ok(nsdd_alg_set_subdomain(
+                h,
+                s,
+                l2g.len(),
+                rp.as_ptr(),
+                ci.as_ptr(),
+                va.as_ptr(),
+                l2g.as_ptr(),
+            ));
+        }
+        let mut cables: Vec<(usize, nsdd::dd::CableColumn)> = problem
+            .loads
+            .iter()
+            .enumerate()
+            .flat_map(|(s, l)| l.cables.iter().map(move |c| (s, *c)))
+            .collect();
+        cables.sort_by_key(|(_, c)| c.cable);
+        for (s, c) in cables {
+            let (dofs, coefs): (Vec<usize>, Vec<f64>) = c
+                .dofs
+                .iter()
+                .zip(&c.coef)
+                .filter(|(d, _)| **d != NO_DOF)
+                .map(|(&d, &v)| (d as usize, v))
+                .unzip();
+            let mut index = usize::MAX;
+            ok(nsdd_alg_add_cable(
+                h,
+                s,
+                dofs.len(),
+                dofs.as_ptr(),
+                coefs.as_ptr(),
+                c.k,
+                c.e0,
+                &mut index,
+            ));
+            assert_eq!(index, c.cable);
+        }
+        let xyz: Vec<f64> = problem.dof_points.iter().flat_map(|(p, _)| *p).collect();
+        let comp: Vec<u8> = problem.dof_points.iter().map(|(_, c)| *c as u8).collect();
+        ok(nsdd_alg_set_dof_points(h, model.n_free, xyz.as_ptr(), comp.as_ptr()));
+    }
+    (model, dec, h)
+}
+
+fn dd_options(scene_file: &str) -> DdOptions {
+    let scene = Scene::load(&root().join("scenes").join(scene_file)).unwrap();
+    DdOptions {
+        coarse: true,
+        tolerance: scene.solver.tolerance,
+        max_iterations: scene.solver.max_iterations,
+        search_direction: scene.solver.search_direction,
+    }
+}
+
+#[test]
+fn algebraic_results_match_rust_api_bit_for_bit() {
+    // grid-8x8: unilateral prestressed cables, multilevel on 4 subdomains.
+    let (model, dec, h) = algebraic_from_scene("grid-8x8.toml", 4);
+    let opts = dd_options("grid-8x8.toml");
+    let mut rust = DdSolver::new(&model, &dec, opts.clone()).unwrap();
+    let f = &model.load_cases[0];
+    let want = rust.solve(f, false, None).unwrap();
+    assert!(want.converged && want.lambda.iter().any(|&l| l > 0.0));
+    // Local right-hand sides exactly as DdSolver::solve forms them.
+    let problem = DdProblem::from_model(&model, &dec).unwrap();
+    let rhs: Vec<Vec<f64>> = dec
+        .subdomains
+        .iter()
+        .zip(&problem.loads)
+        .map(|(sd, load)| {
+            sd.dofs
+                .iter()
+                .enumerate()
+                .map(|(l, &d)| f[d] * (1.0 / sd.multiplicity[l] as f64) + load.constant[l])
+                .collect()
+        })
+        .collect();
+    let ptrs: Vec<*const f64> = rhs.iter().map(|r| r.as_ptr()).collect();
+    unsafe {
+        let o = nsdd_options_new();
+        ok(nsdd_options_set_method(o, NsddMethod::Multilevel as u32));
+        ok(nsdd_options_set_tolerance(o, opts.tolerance));
+        ok(nsdd_alg_setup(h, o));
+        let mut d = 0.0;
+        ok(nsdd_alg_search_direction(h, &mut d));
+        assert_eq!(d.to_bits(), rust.search_direction().to_bits());
+        let mut n_cables = 0;
+        ok(nsdd_alg_num_cables(h, &mut n_cables));
+        assert_eq!(n_cables, model.cables.len());
+        // Twice: the set-up is reused and every solve starts from zero.
+        for _ in 0..2 {
+            let mut u = vec![0.0; model.n_free];
+            let mut lambda = vec![0.0; n_cables];
+            let (mut it, mut conv) = (0usize, false);
+            ok(nsdd_alg_solve(
+                h,
+                ptrs.as_ptr(),
+                u.as_mut_ptr(),
+                lambda.as_mut_ptr(),
+                &mut it,
+                &mut conv,
+            ));
+            assert_eq!(bits(&u), bits(&want.u));
+            assert_eq!(bits(&lambda), bits(&want.lambda));
+            assert_eq!((it, conv), (want.iterations, want.converged));
+        }
+        nsdd_options_destroy(o);
+        nsdd_alg_destroy(h);
+    }
+
+    // grid-4x4-linear (no prestress): the global right-hand side path.
+    let (model, dec, h) = algebraic_from_scene("grid-4x4-linear.toml", 4);
+    let opts = dd_options("grid-4x4-linear.toml");
+    let mut rust = DdSolver::new(&model, &dec, opts).unwrap();
+    let want = rust.solve(&model.load_cases[0], false, None).unwrap();
+    unsafe {
+        ok(nsdd_alg_setup(h, null())); // NULL options: multilevel, defaults
+        let mut u = vec![0.0; model.n_free];
+        let mut it = 0;
+        ok(nsdd_alg_solve_global(
+            h,
+            model.load_cases[0].as_ptr(),
+            u.as_mut_ptr(),
+            null_mut(),
+            &mut it,
+            null_mut(),
+        ));
+        assert_eq!(bits(&u), bits(&want.u));
+        assert_eq!(it, want.iterations);
+        nsdd_alg_destroy(h);
+    }
+}
+
+/// A 1D chain of `n` springs (stiffness `k`, node 0 fixed, global dof g =
+/// node g + 1) in two subdomains; subdomain 1 is floating and numbered in
+/// reverse. Returns the handle.
+fn chain(n: usize, k: f64) -> *mut NsddAlgebraic {
+    let half = n / 2;
+    let mut h = null_mut();
+    unsafe {
+        ok(nsdd_alg_new(2, n, &mut h));
+        // Subdomain 0: nodes 1..=half, lower triangle only.
+        let mut rp = vec![0];
+        let (mut ci, mut va) = (vec![], vec![]);
+        for i in 0..half {
+            if i > 0 {
+                ci.push(i - 1);
+                va.push(-k);
+            }
+            ci.push(i);
+            va.push(if i + 1 < half { 2.0 * k } else { k });
+            rp.push(ci.len());
+        }
+        let l2g: Vec<usize> = (0..half).collect();
+        ok(nsdd_alg_set_subdomain(
+            h,
+            0,
+            half,
+            rp.as_ptr(),
+            ci.as_ptr(),
+            va.as_ptr(),
+            l2g.as_ptr(),
+        ));
+        // Subdomain 1: nodes n, n-1, ..., half (reversed), full matrix.
+        let m = n - half + 1;
+        let mut rp = vec![0];
+        let (mut ci, mut va) = (vec![], vec![]);
+        for i in 0..m {
+            if i > 0 {
+                ci.push(i - 1);
+                va.push(-k);
+            }
+            ci.push(i);
+            va.push(if i == 0 || i + 1 == m { k } else { 2.0 * k });
+            if i + 1 < m {
+                ci.push(i + 1);
+                va.push(-k);
+            }
+            rp.push(ci.len());
+        }
+        let l2g: Vec<usize> = (0..m).map(|i| n - 1 - i).collect();
+        ok(nsdd_alg_set_subdomain(
+            h,
+            1,
+            m,
+            rp.as_ptr(),
+            ci.as_ptr(),
+            va.as_ptr(),
+            l2g.as_ptr(),
+        ));
+        let xyz: Vec<f64> = (0..n).flat_map(|g| [g as f64 + 1.0, 0.0, 0.0]).collect();
+        ok(nsdd_alg_set_dof_points(h, n, xyz.as_ptr(), vec![0u8; n].as_ptr()));
+    }
+    h
+}
+
+#[test]
+fn algebraic_chain_with_kernel_and_permutation() {
+    let (n, k) = (10, 50.0);
+    for given_kernel in [false, true] {
+        let h = chain(n, k);
+        unsafe {
+            if given_kernel {
+                // Subdomain 1 floats: its kernel is the constant vector.
+                let m = n - n / 2 + 1;
+                ok(nsdd_alg_set_kernel(h, 1, m, 1, vec![1.0; m].as_ptr()));
+            }
+            let o = nsdd_options_new();
+            ok(nsdd_options_set_method(o, NsddMethod::Multilevel as u32));
+            ok(nsdd_options_set_tolerance(o, 1e-12));
+            ok(nsdd_alg_setup(h, o));
+            nsdd_options_destroy(o);
+            let mut f = vec![0.0; n];
+            f[n - 1] = 2.0;
+            let mut u = vec![0.0; n];
+            let mut conv = false;
+            ok(nsdd_alg_solve_global(
+                h,
+                f.as_ptr(),
+                u.as_mut_ptr(),
+                null_mut(),
+                null_mut(),
+                &mut conv,
+            ));
+            assert!(conv);
+            for (g, &x) in u.iter().enumerate() {
+                let want = (g + 1) as f64 * 2.0 / k;
+                assert!((x - want).abs() < 1e-9, "u[{g}] = {x}, want {want}");
+            }
+            // The same load given per subdomain, in the reversed local numbering.
+            let r0 = vec![0.0; n / 2];
+            let mut r1 = vec![0.0; n - n / 2 + 1];
+            r1[0] = 2.0;
+            let ptrs = [r0.as_ptr(), r1.as_ptr()];
+            let mut u2 = vec![0.0; n];
+            ok(nsdd_alg_solve(
+                h,
+                ptrs.as_ptr(),
+                u2.as_mut_ptr(),
+                null_mut(),
+                null_mut(),
+                null_mut(),
+            ));
+            for (a, b) in u.iter().zip(&u2) {
+                assert!((a - b).abs() < 1e-9);
+            }
+            nsdd_alg_destroy(h);
+        }
+    }
+}
+
+#[test]
+fn algebraic_bad_arguments() {
+    let k = 10.0;
+    let rp = [0usize, 2, 4];
+    let ci = [0usize, 1, 0, 1];
+    let va = [2.0 * k, -k, -k, 2.0 * k];
+    let l2g = [0usize, 1];
+    unsafe {
+        let mut h = std::ptr::dangling_mut::<NsddAlgebraic>();
+        expect_err(nsdd_alg_new(0, 4, &mut h), NsddStatus::InvalidArgument, "n_subdomains");
+        assert!(h.is_null());
+        expect_err(nsdd_alg_new(2, 0, &mut h), NsddStatus::InvalidArgument, "n_global_dofs");
+        expect_err(nsdd_alg_new(5, 4, &mut h), NsddStatus::InvalidArgument, "exceeds");
+        expect_err(nsdd_alg_new(1, 4, null_mut()), NsddStatus::NullPointer, "out");
+        ok(nsdd_alg_new(2, 3, &mut h));
+
+        // nsdd_alg_set_subdomain
+        let set = |s, n, rp: &[usize], ci: &[usize], va: &[f64], l2g: &[usize]| {
+            nsdd_alg_set_subdomain(h, s, n, rp.as_ptr(), ci.as_ptr(), va.as_ptr(), l2g.as_ptr())
+        };
+        expect_err(
+            nsdd_alg_set_subdomain(null_mut(), 0, 2, rp.as_ptr(), ci.as_ptr(), va.as_ptr(), l2g.as_ptr()),
+            NsddStatus::NullPointer,
+            "alg",
+        );
+        expect_err(
+            set(2, 2, &rp, &ci, &va, &l2g),
+            NsddStatus::InvalidArgument,
+            "subdomain 2 out of range",
+        );
+        expect_err(set(0, 0, &rp, &ci, &va, &l2g), NsddStatus::InvalidArgument, "n_local");
+        expect_err(
+            nsdd_alg_set_subdomain(h, 0, 2, null(), ci.as_ptr(), va.as_ptr(), l2g.as_ptr()),
+            NsddStatus::NullPointer,
+            "row_ptr",
+        );
+        expect_err(
+            nsdd_alg_set_subdomain(h, 0, 2, rp.as_ptr(), null(), va.as_ptr(), l2g.as_ptr()),
+            NsddStatus::NullPointer,
+            "col_idx",
+        );
+        expect_err(
+            nsdd_alg_set_subdomain(h, 0, 2, rp.as_ptr(), ci.as_ptr(), null(), l2g.as_ptr()),
+            NsddStatus::NullPointer,
+            "values",
+        );
+        expect_err(
+            nsdd_alg_set_subdomain(h, 0, 2, rp.as_ptr(), ci.as_ptr(), va.as_ptr(), null()),
+            NsddStatus::NullPointer,
+            "local_to_global",
+        );
+        expect_err(
+            set(0, 2, &[1, 2, 4], &ci, &va, &l2g),
+            NsddStatus::InvalidArgument,
+            "row_ptr[0]",
+        );
+        expect_err(
+            set(0, 2, &[0, 3, 2], &ci, &va, &l2g),
+            NsddStatus::InvalidArgument,
+            "must not decrease",
+        );
+        expect_err(
+            set(0, 2, &rp, &[0, 2, 0, 1], &va, &l2g),
+            NsddStatus::InvalidArgument,
+            "col_idx[1] = 2",
+        );
+        expect_err(
+            set(0, 2, &rp, &ci, &[1.0, f64::NAN, 1.0, 1.0], &l2g),
+            NsddStatus::InvalidArgument,
+            "values[1]",
+        );
+        expect_err(
+            set(0, 2, &rp, &ci, &va, &[0, 3]),
+            NsddStatus::InvalidArgument,
+            "local_to_global[1] = 3",
+        );
+        expect_err(
+            set(0, 2, &rp, &ci, &va, &[1, 1]),
+            NsddStatus::InvalidArgument,
+            "both global dof 1",
+        );
+        expect_err(
+            set(0, 2, &[0, 2, 3], &[0, 1, 1], &[2.0, -1.0, 2.0], &l2g),
+            NsddStatus::InvalidArgument,
+            "upper triangle",
+        );
+
+        // Operations on an unset subdomain.
+        expect_err(
+            nsdd_alg_set_kernel(h, 0, 2, 1, [1.0, 1.0].as_ptr()),
+            NsddStatus::InvalidArgument,
+            "has not been set",
+        );
+        expect_err(
+            nsdd_alg_add_cable(h, 0, 1, [0usize].as_ptr(), [1.0].as_ptr(), 1.0, 0.0, null_mut()),
+            NsddStatus::InvalidArgument,
+            "has not been set",
+        );
+        expect_err(
+            nsdd_alg_setup(h, null()),
+            NsddStatus::InvalidArgument,
+            "subdomain 0 has not been set",
+        );
+
+        ok(set(0, 2, &rp, &ci, &va, &l2g));
+        // Subdomain 1: dof 2 only, spring to ground, lower triangle.
+        ok(set(1, 1, &[0, 1], &[0], &[k], &[2]));
+
+        // nsdd_alg_set_kernel
+        expect_err(
+            nsdd_alg_set_kernel(null_mut(), 0, 2, 1, [1.0, 1.0].as_ptr()),
+            NsddStatus::NullPointer,
+            "alg",
+        );
+        expect_err(
+            nsdd_alg_set_kernel(h, 2, 2, 1, [1.0, 1.0].as_ptr()),
+            NsddStatus::InvalidArgument,
+            "out of range",
+        );
+        expect_err(
+            nsdd_alg_set_kernel(h, 0, 3, 1, [1.0; 3].as_ptr()),
+            NsddStatus::InvalidArgument,
+            "n_local = 3",
+        );
+        expect_err(
+            nsdd_alg_set_kernel(h, 0, 2, 1, null()),
+            NsddStatus::NullPointer,
+            "basis",
+        );
+        expect_err(
+            nsdd_alg_set_kernel(h, 0, 2, 1, [1.0, f64::INFINITY].as_ptr()),
+            NsddStatus::InvalidArgument,
+            "basis[1]",
+        );
+        ok(nsdd_alg_set_kernel(h, 0, 2, 0, null())); // no kernel
+
+        // nsdd_alg_add_cable
+        let (d0, c1) = ([0usize; 7].as_ptr(), [1.0; 7].as_ptr());
+        expect_err(
+            nsdd_alg_add_cable(null_mut(), 0, 1, d0, c1, 1.0, 0.0, null_mut()),
+            NsddStatus::NullPointer,
+            "alg",
+        );
+        expect_err(
+            nsdd_alg_add_cable(h, 5, 1, d0, c1, 1.0, 0.0, null_mut()),
+            NsddStatus::InvalidArgument,
+            "out of range",
+        );
+        expect_err(
+            nsdd_alg_add_cable(h, 0, 7, d0, c1, 1.0, 0.0, null_mut()),
+            NsddStatus::InvalidArgument,
+            "n_entries = 7",
+        );
+        expect_err(
+            nsdd_alg_add_cable(h, 0, 1, null(), c1, 1.0, 0.0, null_mut()),
+            NsddStatus::NullPointer,
+            "local_dofs",
+        );
+        expect_err(
+            nsdd_alg_add_cable(h, 0, 1, d0, null(), 1.0, 0.0, null_mut()),
+            NsddStatus::NullPointer,
+            "coefs",
+        );
+        expect_err(
+            nsdd_alg_add_cable(h, 0, 1, [2usize].as_ptr(), c1, 1.0, 0.0, null_mut()),
+            NsddStatus::InvalidArgument,
+            "local_dofs[0] = 2",
+        );
+        expect_err(
+            nsdd_alg_add_cable(h, 0, 1, d0, c1, 0.0, 0.0, null_mut()),
+            NsddStatus::InvalidArgument,
+            "k must be positive",
+        );
+        expect_err(
+            nsdd_alg_add_cable(h, 0, 1, d0, c1, 1.0, f64::NAN, null_mut()),
+            NsddStatus::InvalidArgument,
+            "e0",
+        );
+        expect_err(
+            nsdd_alg_add_cable(h, 0, 1, d0, [f64::NAN].as_ptr(), 1.0, 0.0, null_mut()),
+            NsddStatus::InvalidArgument,
+            "coefs[0]",
+        );
+        let mut n_cables = 9;
+        ok(nsdd_alg_num_cables(h, &mut n_cables));
+        assert_eq!(n_cables, 0, "failed calls add nothing");
+        expect_err(
+            nsdd_alg_num_cables(null(), &mut n_cables),
+            NsddStatus::NullPointer,
+            "alg",
+        );
+        expect_err(nsdd_alg_num_cables(h, null_mut()), NsddStatus::NullPointer, "out");
+
+        // nsdd_alg_set_dof_points
+        let xyz = [0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 2.0, 0.0, 0.0];
+        expect_err(
+            nsdd_alg_set_dof_points(null_mut(), 3, xyz.as_ptr(), [0u8; 3].as_ptr()),
+            NsddStatus::NullPointer,
+            "alg",
+        );
+        expect_err(
+            nsdd_alg_set_dof_points(h, 2, xyz.as_ptr(), [0u8; 2].as_ptr()),
+            NsddStatus::InvalidArgument,
+            "n_global = 2",
+        );
+        expect_err(
+            nsdd_alg_set_dof_points(h, 3, null(), [0u8; 3].as_ptr()),
+            NsddStatus::NullPointer,
+            "xyz",
+        );
+        expect_err(
+            nsdd_alg_set_dof_points(h, 3, xyz.as_ptr(), null()),
+            NsddStatus::NullPointer,
+            "component",
+        );
+        expect_err(
+            nsdd_alg_set_dof_points(h, 3, xyz.as_ptr(), [0u8, 3, 0].as_ptr()),
+            NsddStatus::InvalidArgument,
+            "component[1] = 3",
+        );
+
+        // Set-up and solve in the wrong state or with missing data.
+        let mut u = [0.0; 3];
+        let rhs0 = [0.0, 0.0];
+        let rhs1 = [1.0];
+        let ptrs = [rhs0.as_ptr(), rhs1.as_ptr()];
+        expect_err(
+            nsdd_alg_solve(h, ptrs.as_ptr(), u.as_mut_ptr(), null_mut(), null_mut(), null_mut()),
+            NsddStatus::NotSolved,
+            "nsdd_alg_setup",
+        );
+        expect_err(
+            nsdd_alg_solve_global(h, [0.0; 3].as_ptr(), u.as_mut_ptr(), null_mut(), null_mut(), null_mut()),
+            NsddStatus::NotSolved,
+            "nsdd_alg_setup",
+        );
+        let mut d = 0.0;
+        expect_err(
+            nsdd_alg_search_direction(h, &mut d),
+            NsddStatus::NotSolved,
+            "nsdd_alg_setup",
+        );
+        expect_err(nsdd_alg_setup(h, null()), NsddStatus::InvalidArgument, "dof points");
+        expect_err(nsdd_alg_setup(null_mut(), null()), NsddStatus::NullPointer, "alg");
+        let o = nsdd_options_new(); // direct
+        expect_err(nsdd_alg_setup(h, o), NsddStatus::MethodNotApplicable, "direct");
+        ok(nsdd_options_set_method(o, NsddMethod::Monolevel as u32));
+        ok(nsdd_alg_setup(h, o)); // monolevel needs no dof points; both subdomains regular
+        ok(nsdd_alg_set_dof_points(h, 3, xyz.as_ptr(), [0u8; 3].as_ptr()));
+        ok(nsdd_alg_setup(h, null()));
+        ok(nsdd_alg_search_direction(h, &mut d));
+        expect_err(nsdd_alg_search_direction(h, null_mut()), NsddStatus::NullPointer, "out");
+        expect_err(
+            nsdd_alg_search_direction(null(), &mut d),
+            NsddStatus::NullPointer,
+            "alg",
+        );
+        expect_err(
+            nsdd_alg_solve(
+                null_mut(),
+                ptrs.as_ptr(),
+                u.as_mut_ptr(),
+                null_mut(),
+                null_mut(),
+                null_mut(),
+            ),
+            NsddStatus::NullPointer,
+            "alg",
+        );
+        expect_err(
+            nsdd_alg_solve(h, null(), u.as_mut_ptr(), null_mut(), null_mut(), null_mut()),
+            NsddStatus::NullPointer,
+            "rhs",
+        );
+        let bad = [rhs0.as_ptr(), null()];
+        expect_err(
+            nsdd_alg_solve(h, bad.as_ptr(), u.as_mut_ptr(), null_mut(), null_mut(), null_mut()),
+            NsddStatus::NullPointer,
+            "rhs[1]",
+        );
+        let nan = [f64::NAN];
+        let bad = [rhs0.as_ptr(), nan.as_ptr()];
+        expect_err(
+            nsdd_alg_solve(h, bad.as_ptr(), u.as_mut_ptr(), null_mut(), null_mut(), null_mut()),
+            NsddStatus::InvalidArgument,
+            "rhs[1][0]",
+        );
+        expect_err(
+            nsdd_alg_solve(h, ptrs.as_ptr(), null_mut(), null_mut(), null_mut(), null_mut()),
+            NsddStatus::NullPointer,
+            "out_u",
+        );
+        expect_err(
+            nsdd_alg_solve_global(h, null(), u.as_mut_ptr(), null_mut(), null_mut(), null_mut()),
+            NsddStatus::NullPointer,
+            "f is NULL",
+        );
+        expect_err(
+            nsdd_alg_solve_global(h, [0.0; 3].as_ptr(), null_mut(), null_mut(), null_mut(), null_mut()),
+            NsddStatus::NullPointer,
+            "out_u",
+        );
+        expect_err(
+            nsdd_alg_solve_global(
+                null_mut(),
+                [0.0; 3].as_ptr(),
+                u.as_mut_ptr(),
+                null_mut(),
+                null_mut(),
+                null_mut(),
+            ),
+            NsddStatus::NullPointer,
+            "alg",
+        );
+        let mut conv = false;
+        ok(nsdd_alg_solve(
+            h,
+            ptrs.as_ptr(),
+            u.as_mut_ptr(),
+            null_mut(),
+            null_mut(),
+            &mut conv,
+        ));
+        assert!(conv);
+        assert!((u[2] - 1.0 / k).abs() < 1e-12 && u[0].abs() < 1e-12);
+        // Changing the problem discards the set-up.
+        ok(nsdd_alg_add_cable(
+            h,
+            1,
+            1,
+            [0usize].as_ptr(),
+            [1.0].as_ptr(),
+            1.0,
+            0.0,
+            null_mut(),
+        ));
+        expect_err(
+            nsdd_alg_solve(h, ptrs.as_ptr(), u.as_mut_ptr(), null_mut(), null_mut(), null_mut()),
+            NsddStatus::NotSolved,
+            "nsdd_alg_setup",
+        );
+        // A cable made invalid by resetting its subdomain smaller is caught at set-up.
+        ok(nsdd_alg_add_cable(
+            h,
+            0,
+            1,
+            [1usize].as_ptr(),
+            [1.0].as_ptr(),
+            1.0,
+            0.0,
+            null_mut(),
+        ));
+        ok(set(0, 1, &[0, 1], &[0], &[k], &[0]));
+        ok(set(1, 2, &[0, 1, 2], &[0, 1], &[k, k], &[1, 2]));
+        expect_err(
+            nsdd_alg_setup(h, null()),
+            NsddStatus::InvalidArgument,
+            "cable 1: local dof 1",
+        );
+        nsdd_options_destroy(o);
+        nsdd_alg_destroy(h);
+
+        // A global dof in no subdomain.
+        let mut h = null_mut();
+        ok(nsdd_alg_new(1, 3, &mut h));
+        ok(nsdd_alg_set_subdomain(
+            h,
+            0,
+            2,
+            rp.as_ptr(),
+            ci.as_ptr(),
+            va.as_ptr(),
+            l2g.as_ptr(),
+        ));
+        expect_err(
+            nsdd_alg_setup(h, null()),
+            NsddStatus::InvalidArgument,
+            "global dof 2 belongs to no subdomain",
+        );
+        nsdd_alg_destroy(h);
+
+        // One floating subdomain: a mechanism.
+        let mut h = null_mut();
+        ok(nsdd_alg_new(1, 2, &mut h));
+        let fl = [k, -k, -k, k];
+        ok(nsdd_alg_set_subdomain(
+            h,
+            0,
+            2,
+            rp.as_ptr(),
+            ci.as_ptr(),
+            fl.as_ptr(),
+            l2g.as_ptr(),
+        ));
+        ok(nsdd_alg_set_dof_points(h, 2, xyz.as_ptr(), [0u8; 2].as_ptr()));
+        expect_err(nsdd_alg_setup(h, null()), NsddStatus::Mechanism, "singular");
+        // A wrong kernel is invalid input.
+        ok(nsdd_alg_set_kernel(h, 0, 2, 1, [1.0, 0.0].as_ptr()));
+        expect_err(nsdd_alg_setup(h, null()), NsddStatus::InvalidInput, "kernel");
+        // An indefinite matrix.
+        let ind = [k, 0.0, 0.0, -k];
+        ok(nsdd_alg_set_subdomain(
+            h,
+            0,
+            2,
+            rp.as_ptr(),
+            ci.as_ptr(),
+            ind.as_ptr(),
+            l2g.as_ptr(),
+        ));
+        expect_err(
+            nsdd_alg_setup(h, null()),
+            NsddStatus::IndefiniteSubdomain,
+            "subdomain 0",
+        );
+        nsdd_alg_destroy(h);
+    }
+}
+
+#[test]
+fn header_declares_every_exported_function() {
+    let src = std::fs::read_to_string(root().join("src/capi.rs")).unwrap();
+    let header = std::fs::read_to_string(root().join("include/nsdd.h")).unwrap();
+    let mut count = 0;
+    for line in src.lines() {
+        let line = line.trim();
+        if let Some(rest) = line
+            .strip_prefix("pub unsafe extern \"C\" fn ")
+            .or_else(|| line.strip_prefix("pub extern \"C\" fn "))
+        {
+            let name = &rest[..rest.find('(').unwrap()];
+            let declared = header.contains(&format!(" {name}(")) || header.contains(&format!("*{name}("));
+            assert!(declared, "{name} missing from include/nsdd.h (rebuild)");
+            count += 1;
+        }
+    }
+    assert!(count >= 40, "found only {count} exported functions");
+    for st in [
+        "NSDD_STATUS_OK = 0",
+        "NSDD_STATUS_PANIC = 12",
+        "NSDD_METHOD_MULTILEVEL = 2",
+        "NSDD_ELEMENT_KIND_CABLE = 1",
+    ] {
+        assert!(header.contains(st), "{st} missing from include/nsdd.h");
+    }
+}
+
+/// Builds and runs the C and C++ examples (`make -C c_examples run`).
+/// Ignored by default: it needs a C toolchain and runs `cargo build
+/// --release` in the same tree. Skips when `cc` is not found.
+#[test]
+#[ignore]
+fn c_examples() {
+    let have_cc = std::process::Command::new("cc")
+        .arg("--version")
+        .output()
+        .is_ok_and(|o| o.status.success());
+    if !have_cc {
+        eprintln!("skipping: no C compiler (cc) found");
+        return;
+    }
+    let status = std::process::Command::new("make")
+        .args(["-C", "c_examples", "run"])
+        .current_dir(root())
+        .status()
+        .expect("run make");
+    assert!(status.success(), "make -C c_examples run failed");
+}
