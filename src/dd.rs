@@ -486,6 +486,12 @@ impl DdSolver {
         Ok(solver)
     }
 
+    /// Changes the stopping rule for later solves (the set-up is unchanged).
+    pub fn set_stopping(&mut self, tolerance: f64, max_iterations: usize) {
+        self.opts.tolerance = tolerance;
+        self.opts.max_iterations = max_iterations;
+    }
+
     /// Set-up sizes and the chosen `d`.
     pub fn stats(&self) -> &DdStats {
         &self.stats
