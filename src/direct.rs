@@ -14,6 +14,10 @@
 //! `K⁻¹ h_c` are computed in batches only for cables that ever enter `S`,
 //! and their Schur entries are cached as `S` changes.
 //!
+//! When the slack set grows beyond `SCHUR_MAX` cables, the dense Schur
+//! complement costs more than a factorization, and each step instead
+//! factors `K` without the slack cables (a mechanism there is reported).
+//!
 //! The set update is the primal–dual active set (semismooth Newton) rule;
 //! if it revisits a set, it switches to Murty's least-index rule, which
 //! terminates for the positive definite Schur matrices met here.
@@ -27,6 +31,42 @@ use std::collections::HashSet;
 
 /// Width of the column blocks solved at once when building Schur columns.
 const BATCH: usize = 32;
+
+/// Largest slack set handled through the dense Schur complement. Beyond it,
+/// `|S|` solves and an `O(|S|³)` dense factorization per active-set step
+/// cost far more than one factorization of `K` without the slack cables.
+const SCHUR_MAX: usize = 400;
+
+/// Solves `(K − H_S K_S H_Sᵀ) u = b + H_S K_S e0_S`: the structure with its
+/// slack cables removed (their tension is zero), by a fresh factorization.
+fn solve_without_slack(model: &Model, b: &[f64], slack: &[bool], u: &mut [f64]) -> Result<()> {
+    let mut is_slack = vec![false; model.elements.len()];
+    for (c, &e) in model.cables.iter().enumerate() {
+        is_slack[e] = slack[c];
+    }
+    let taut: Vec<usize> = (0..model.elements.len()).filter(|&e| !is_slack[e]).collect();
+    let trip = model.stiffness_triplets(&taut, Some);
+    let k = lower_csc(model.n_free, &trip).map_err(|e| Error::Numerical(format!("{e:?}")))?;
+    let mut chol = SparseCholesky::factor(&k, 1).map_err(|e| match e {
+        FactorError::Pivot { dof, .. } => {
+            let (node, c) = model.dof_owner(dof);
+            Error::Mechanism(format!(
+                "the structure becomes a mechanism when its slack cables are removed (no stiffness at node {node} component {})",
+                ["x", "y", "z"][c]
+            ))
+        }
+        FactorError::Internal(m) => Error::Numerical(m),
+    })?;
+    u.copy_from_slice(b);
+    for (c, &e) in model.cables.iter().enumerate() {
+        if slack[c] {
+            let el = &model.elements[e];
+            model.add_h(e, el.k * el.e0, u);
+        }
+    }
+    chol.solve_in_place(u);
+    Ok(())
+}
 
 /// The equilibrium found by a solver, in free-dof numbering.
 #[derive(Debug, Clone, PartialEq)]
@@ -70,6 +110,7 @@ pub struct DirectSolver {
     cache_pos: Vec<usize>,
     /// Dense symmetric `K_c^{1/2} h_cᵀ K⁻¹ h_d K_d^{1/2}` over `cached`.
     schur: Mat<f64>,
+    schur_max: usize,
 }
 
 impl DirectSolver {
@@ -107,7 +148,14 @@ impl DirectSolver {
             cached: Vec::new(),
             cache_pos: vec![usize::MAX; model.cables.len()],
             schur: Mat::zeros(0, 0),
+            schur_max: SCHUR_MAX,
         })
+    }
+
+    /// Largest slack set solved through the Schur complement of the single
+    /// factorization (default 400); larger sets refactor `K` without them.
+    pub fn set_schur_limit(&mut self, max_slack: usize) {
+        self.schur_max = max_slack;
     }
 
     /// Sizes and timings of the factorization.
@@ -147,20 +195,28 @@ impl DirectSolver {
         for it in 1..=max_iter {
             let set: Vec<usize> = (0..nc).filter(|&c| slack[c]).collect();
             lambda.iter_mut().for_each(|l| *l = 0.0);
-            if !set.is_empty() {
-                self.extend_cache(model, &set);
-                let mu = self.solve_schur(model, &set, &g0)?;
-                for (i, &c) in set.iter().enumerate() {
-                    lambda[c] = mu[i] / model.elements[model.cables[c]].k.sqrt();
+            if set.len() <= self.schur_max {
+                if !set.is_empty() {
+                    self.extend_cache(model, &set);
+                    let mu = self.solve_schur(model, &set, &g0)?;
+                    for (i, &c) in set.iter().enumerate() {
+                        lambda[c] = mu[i] / model.elements[model.cables[c]].k.sqrt();
+                    }
+                }
+                // u = K⁻¹ (b − Σ h_c k_c λ_c)
+                u.copy_from_slice(b);
+                for &c in &set {
+                    let e = model.cables[c];
+                    model.add_h(e, -model.elements[e].k * lambda[c], &mut u);
+                }
+                self.chol.solve_in_place(&mut u);
+            } else {
+                solve_without_slack(model, b, &slack, &mut u)?;
+                for &c in &set {
+                    let e = model.cables[c];
+                    lambda[c] = -(model.elongation(e, &u) + model.elements[e].e0);
                 }
             }
-            // u = K⁻¹ (b − Σ h_c k_c λ_c)
-            u.copy_from_slice(b);
-            for &c in &set {
-                let e = model.cables[c];
-                model.add_h(e, -model.elements[e].k * lambda[c], &mut u);
-            }
-            self.chol.solve_in_place(&mut u);
             if u.iter().any(|v| !v.is_finite()) {
                 return Err(Error::Numerical("direct solve produced a non-finite displacement".into()));
             }

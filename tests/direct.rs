@@ -1,0 +1,195 @@
+//! The direct reference solver (issue 2): analytic cases and the KKT
+//! conditions of the convex problem of DESIGN.md §1 on generated scenes.
+
+mod common;
+
+use common::*;
+use nsdd::direct::DirectSolver;
+use nsdd::error::Error;
+use nsdd::generate::{grid, tower, GridParams, TowerParams};
+use nsdd::model::Model;
+use nsdd::scene::{Effects, Method, Scene, SceneBuilder};
+use nsdd::solve::solve;
+
+fn direct(scene: &Scene) -> nsdd::result::SolveResult {
+    solve(scene, &opts(Method::Direct, 1, 1e-10)).unwrap()
+}
+
+#[test]
+fn single_bar() {
+    // Axial bar of length 5, EA = 250, end load 6 along it: u = F L / EA.
+    let mut b = SceneBuilder::new("bar");
+    b.node(0.0, 0.0, 0.0);
+    b.node(5.0, 0.0, 0.0);
+    b.bar(0, 1, 250.0);
+    b.support(0, "xyz").support(1, "yz");
+    b.load(1, [6.0, 0.0, 0.0]);
+    let r = direct(&b.build());
+    assert!((r.displacements[1][0] - 6.0 * 5.0 / 250.0).abs() < 1e-15);
+    assert!((r.tensions[0] - 6.0).abs() < 1e-13);
+}
+
+#[test]
+fn two_bar_truss() {
+    // Symmetric two-bar truss: supports at (±1, 0), apex at (0, 1), load P
+    // down. Each bar: L = √2, N = −P / (2 sin 45°) = −P/√2 (compression),
+    // vertical deflection v = P L / (2 EA sin² 45°) = P √2 / EA.
+    let (p, ea) = (10.0, 1000.0);
+    let mut b = SceneBuilder::new("two-bar");
+    b.node(-1.0, 0.0, 0.0);
+    b.node(1.0, 0.0, 0.0);
+    b.node(0.0, 1.0, 0.0);
+    b.bar(0, 2, ea);
+    b.bar(1, 2, ea);
+    b.support(0, "xyz").support(1, "xyz").support(2, "z");
+    b.load(2, [0.0, -p, 0.0]);
+    let r = direct(&b.build());
+    let s2 = 2f64.sqrt();
+    assert!((r.displacements[2][1] + p * s2 / ea).abs() < 1e-14);
+    assert!(r.displacements[2][0].abs() < 1e-15);
+    for t in &r.tensions {
+        assert!((t + p / s2).abs() < 1e-12);
+    }
+}
+
+/// Two collinear cables 0–1–2 (k each), node 1 free along x, prestress t0,
+/// load P along +x: if P < 2 t0 both stay taut with t = t0 ± P/2; beyond,
+/// the right cable (unloaded by P) goes slack and the left carries P alone.
+fn cable_pair(p: f64) -> Scene {
+    let mut b = SceneBuilder::new("cable-pair");
+    b.node(0.0, 0.0, 0.0);
+    b.node(1.0, 0.0, 0.0);
+    b.node(2.0, 0.0, 0.0);
+    let a = b.cable(0, 1, 100.0);
+    let c = b.cable(1, 2, 100.0);
+    b.prestress(a, 2.0).prestress(c, 2.0);
+    b.support(0, "xyz").support(2, "xyz").support(1, "yz");
+    b.load(1, [p, 0.0, 0.0]);
+    b.effects(Effects { unilateral_cables: true, prestress: true, ..Default::default() });
+    b.build()
+}
+
+#[test]
+fn prestressed_cable_pair_one_goes_slack() {
+    // k = 100, e0 = 0.02. Taut: u = P / (2k), t = t0 ± P/2.
+    let r = direct(&cable_pair(1.0));
+    assert!((r.displacements[1][0] - 0.005).abs() < 1e-15);
+    assert!((r.tensions[0] - 2.5).abs() < 1e-12 && (r.tensions[1] - 1.5).abs() < 1e-12);
+    assert_eq!(r.slack, vec![false, false]);
+    // P = 6 > 2 t0: right cable slack, left carries P: u = P/k − e0 = 0.04.
+    let r = direct(&cable_pair(6.0));
+    assert_eq!(r.slack, vec![false, true]);
+    assert_eq!(r.tensions[1], 0.0);
+    assert!((r.tensions[0] - 6.0).abs() < 1e-12);
+    assert!((r.displacements[1][0] - 0.04).abs() < 1e-15);
+    // The slack cable is shortened: e + e0 = −u + e0 < 0.
+    assert!(-r.displacements[1][0] + 0.02 < 0.0);
+    // DD on two subdomains (one cable each) agrees.
+    assert_matches_direct(&cable_pair(6.0), Method::Multilevel, 2, 1e-10);
+}
+
+/// KKT of the convex QP: equilibrium `Σ H t = f` at free dofs, `t ≥ 0` on
+/// cables, slack ⇒ `t = 0` and `e + e0 ≤ 0`, taut ⇒ `t = k (e + e0)`.
+fn check_kkt(scene: &Scene, r: &nsdd::result::SolveResult) {
+    let model = Model::from_scene(scene).unwrap();
+    let u: Vec<f64> = {
+        let mut u = vec![0.0; model.n_free];
+        for (n, d) in model.node_dofs.iter().enumerate() {
+            for c in 0..3 {
+                if d[c] != nsdd::model::FIXED {
+                    u[d[c]] = r.displacements[n][c];
+                }
+            }
+        }
+        u
+    };
+    let mut internal = vec![0.0; model.n_free];
+    let mut tscale = 0.0f64;
+    for (e, el) in model.elements.iter().enumerate() {
+        model.add_h(e, r.tensions[e], &mut internal);
+        tscale = tscale.max(r.tensions[e].abs());
+        let strain = model.elongation(e, &u) + el.e0;
+        if el.unilateral {
+            assert!(r.tensions[e] >= 0.0, "cable {e} pushes");
+            if r.slack[e] {
+                assert_eq!(r.tensions[e], 0.0);
+                assert!(strain <= 1e-12 * model.length_scale(), "slack cable {e} is stretched: {strain}");
+            } else {
+                assert!((r.tensions[e] - el.k * strain).abs() <= 1e-9 * tscale.max(el.k * strain.abs()));
+            }
+        }
+    }
+    let f = &model.load_cases[0];
+    let res: f64 = internal.iter().zip(f).map(|(a, b)| (a - b) * (a - b)).sum::<f64>().sqrt();
+    assert!(res <= 1e-9 * tscale.max(1.0), "equilibrium residual {res:e} (tension scale {tscale:e})");
+}
+
+#[test]
+fn kkt_conditions_on_generated_scenes() {
+    let scenes = [
+        grid(&GridParams { nx: 8, ny: 8, t0: 0.1, ..Default::default() }),
+        grid(&GridParams { nx: 12, ny: 6, t0: 0.0, load: 2.0, ..Default::default() }),
+        tower(&TowerParams { nx: 2, ny: 2, nz: 6, t0: 0.002, unilateral: true, ..Default::default() }),
+    ];
+    for scene in &scenes {
+        let r = direct(scene);
+        assert!(r.slack.iter().any(|&s| s), "{}: expected slack cables", scene.scene.name);
+        check_kkt(scene, &r);
+    }
+}
+
+#[test]
+fn large_slack_sets_refactor_and_agree_with_the_schur_path() {
+    let scene = grid(&GridParams { nx: 16, ny: 16, t0: 0.1, ..Default::default() });
+    let model = Model::from_scene(&scene).unwrap();
+    let b = model.rhs(&model.load_cases[0]);
+    let mut schur = DirectSolver::new(&model).unwrap();
+    schur.set_schur_limit(usize::MAX);
+    let mut refactor = DirectSolver::new(&model).unwrap();
+    refactor.set_schur_limit(0);
+    let a = schur.solve(&model, &b).unwrap();
+    let c = refactor.solve(&model, &b).unwrap();
+    assert!(rel_err(&a.u, &c.u) < 1e-12);
+    let sa: Vec<bool> = a.lambda.iter().map(|&l| l > 0.0).collect();
+    let sc: Vec<bool> = c.lambda.iter().map(|&l| l > 0.0).collect();
+    assert_eq!(sa, sc);
+    assert!(sa.iter().filter(|&&s| s).count() > 50);
+}
+
+#[test]
+fn energy_is_minimal_at_the_solution() {
+    // The solution minimises ½ Σ k (e+e0)² (bars) + ½ Σ k max(0, e+e0)²
+    // (cables) − f·u: any perturbation raises it.
+    let scene = grid(&GridParams { nx: 6, ny: 6, t0: 0.1, ..Default::default() });
+    let model = Model::from_scene(&scene).unwrap();
+    let mut solver = DirectSolver::new(&model).unwrap();
+    let eq = solver.solve(&model, &model.rhs(&model.load_cases[0])).unwrap();
+    let energy = |u: &[f64]| {
+        let mut w = 0.0;
+        for (e, el) in model.elements.iter().enumerate() {
+            let s = model.elongation(e, u) + el.e0;
+            let s = if el.unilateral { s.max(0.0) } else { s };
+            w += 0.5 * el.k * s * s;
+        }
+        w - u.iter().zip(&model.load_cases[0]).map(|(a, b)| a * b).sum::<f64>()
+    };
+    let w0 = energy(&eq.u);
+    for k in 0..20 {
+        let mut u = eq.u.clone();
+        for (i, v) in u.iter_mut().enumerate() {
+            *v += 1e-4 * (((i * 31 + k * 17) % 13) as f64 - 6.0) / 6.0;
+        }
+        assert!(energy(&u) > w0, "perturbation {k} lowered the energy");
+    }
+}
+
+#[test]
+fn unsupported_structure_is_a_named_mechanism() {
+    let mut scene = cable_pair(1.0);
+    scene.supports.node = vec![0];
+    scene.supports.dofs = vec!["xyz".into()];
+    match solve(&scene, &opts(Method::Direct, 1, 1e-10)) {
+        Err(Error::Mechanism(m)) => assert!(m.contains("node"), "{m}"),
+        other => panic!("expected a mechanism, got {other:?}"),
+    }
+}
