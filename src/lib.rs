@@ -1,6 +1,7 @@
 //! nsdd: multilevel domain decomposition for nonsmooth discrete structures.
 pub mod error;
 pub mod capi;
+pub mod bench;
 pub mod coarse;
 pub mod dd;
 pub mod decomposition;

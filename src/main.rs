@@ -48,6 +48,8 @@ enum Command {
     Accuracy(AccuracyArgs),
     /// Iterations and time against subdomains (strong) and size (weak)
     Scaling(ScalingArgs),
+    /// Cost profiles: direct solver phases and memory, DD iteration vs substitution bound
+    Bench(BenchArgs),
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -157,6 +159,30 @@ struct AccuracyArgs {
 }
 
 #[derive(Args)]
+struct BenchArgs {
+    /// What to profile: `direct` (assembly, ordering, factorization, solve,
+    /// nnz(L), peak memory) or `iteration` (DD per-iteration time against one
+    /// substitution with every subdomain factor)
+    #[arg(value_parser = ["direct", "iteration"])]
+    what: String,
+    /// Grid sizes (nx = ny) of the generated double-layer grids, increasing
+    #[arg(long, value_delimiter = ',', default_value = "40,130")]
+    sizes: Vec<usize>,
+    /// Subdomain counts (iteration profile)
+    #[arg(long, value_delimiter = ',', default_value = "4,16")]
+    subdomains: Vec<usize>,
+    /// Iterations timed per measurement (iteration profile)
+    #[arg(long, default_value_t = 20)]
+    iterations: usize,
+    /// Unilateral cables (nonsmooth) instead of the linear grid
+    #[arg(long)]
+    nonsmooth: bool,
+    /// Write the rows as JSON lines to this file as well
+    #[arg(long)]
+    out: Option<PathBuf>,
+}
+
+#[derive(Args)]
 struct ScalingArgs {
     /// Generator kind of the scenes
     #[arg(long, default_value = "grid")]
@@ -224,6 +250,7 @@ fn main() -> ExitCode {
         Command::Partition(a) => cmd_partition(a),
         Command::Accuracy(a) => cmd_accuracy(a),
         Command::Scaling(a) => cmd_scaling(a),
+        Command::Bench(a) => cmd_bench(a),
     };
     match outcome {
         Ok(code) => ExitCode::from(code as u8),
@@ -572,5 +599,75 @@ fn cmd_scaling(a: ScalingArgs) -> Result<i32> {
     print!("{}", rep.text());
     println!("wrote {}", csv.display());
     println!("wrote {}", svg.display());
+    Ok(0)
+}
+
+fn cmd_bench(a: BenchArgs) -> Result<i32> {
+    let mut rows: Vec<String> = Vec::new();
+    let scene_of = |n: usize| {
+        generate::grid(&generate::GridParams {
+            nx: n,
+            ny: n,
+            unilateral: a.nonsmooth,
+            t0: if a.nonsmooth { 0.1 } else { 0.0 },
+            ..Default::default()
+        })
+    };
+    if a.what == "direct" {
+        println!(
+            "{:>6} {:>9} {:>11} {:>11} {:>9} {:>9} {:>9} {:>9} {:>6} {:>9} {:>10} {:>10}",
+            "size", "dofs", "nnz(K)", "nnz(L)", "assembly", "ordering", "factor", "solve", "steps", "overhead", "K+L MiB", "peak MiB"
+        );
+        for &n in &a.sizes {
+            let p = nsdd::bench::direct_profile(&scene_of(n))?;
+            let mib = |b: u64| b as f64 / (1024.0 * 1024.0);
+            println!(
+                "{:>6} {:>9} {:>11} {:>11} {:>9.3} {:>9.3} {:>9.3} {:>9.3} {:>6} {:>8.1}% {:>10.1} {:>10.1}",
+                n,
+                p.dofs,
+                p.nnz_k,
+                p.nnz_l,
+                p.assembly_s,
+                p.ordering_s,
+                p.factor_s,
+                p.solve_s,
+                p.active_set_steps,
+                100.0 * p.overhead_ratio,
+                mib(p.matrix_and_factor_bytes),
+                p.peak_bytes.map_or(f64::NAN, mib)
+            );
+            rows.push(serde_json::to_string(&p).expect("serializable"));
+        }
+    } else {
+        println!(
+            "{:>6} {:>9} {:>5} {:>7} {:>7} {:>7} {:>9} {:>11} {:>13} {:>7}",
+            "size", "dofs", "subs", "threads", "macro", "kernel", "setup s", "iter ms", "substit. ms", "ratio"
+        );
+        for &n in &a.sizes {
+            let scene = scene_of(n);
+            for &s in &a.subdomains {
+                let p = nsdd::bench::dd_profile(&scene, s, a.iterations)?;
+                println!(
+                    "{:>6} {:>9} {:>5} {:>7} {:>7} {:>7} {:>9.3} {:>11.3} {:>13.3} {:>7.2}",
+                    n,
+                    p.dofs,
+                    p.subdomains,
+                    p.threads,
+                    p.macro_unknowns,
+                    p.kernel_unknowns,
+                    p.setup_s,
+                    1e3 * p.iteration_s,
+                    1e3 * p.substitution_s,
+                    p.ratio
+                );
+                rows.push(serde_json::to_string(&p).expect("serializable"));
+            }
+        }
+    }
+    if let Some(path) = &a.out {
+        let mut text = rows.join("\n");
+        text.push('\n');
+        std::fs::write(path, text).map_err(|e| Error::Io(format!("{}: {e}", path.display())))?;
+    }
     Ok(0)
 }

@@ -1,0 +1,122 @@
+//! Measurements behind `nsdd bench` and BENCHMARKS.md: where the direct
+//! solver's time and memory go, and what one DD iteration costs against its
+//! lower bound (one forward and backward substitution with every subdomain
+//! factor). Figures are meant to be read as ratios within one run.
+
+use crate::dd::{DdOptions, DdSolver};
+use crate::direct::DirectSolver;
+use crate::error::Result;
+use crate::model::Model;
+use crate::scene::{Scene, SearchDirection};
+use crate::solve::decompose;
+use serde::Serialize;
+use std::time::Instant;
+
+/// Peak resident memory of this process so far (Linux `VmHWM`), in bytes.
+pub fn peak_memory_bytes() -> Option<u64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kb * 1024)
+}
+
+/// Direct solver profile of one scene.
+#[derive(Debug, Clone, Serialize)]
+pub struct DirectProfile {
+    pub dofs: usize,
+    pub nnz_k: usize,
+    pub nnz_l: usize,
+    pub assembly_s: f64,
+    pub ordering_s: f64,
+    pub factor_s: f64,
+    pub solve_s: f64,
+    pub active_set_steps: usize,
+    /// `(assembly + ordering + solve) / factor`: the overhead outside the
+    /// numeric factorization.
+    pub overhead_ratio: f64,
+    /// Bytes of `K` (lower CSC) plus `L` values.
+    pub matrix_and_factor_bytes: u64,
+    pub peak_bytes: Option<u64>,
+}
+
+/// Factors and solves `scene` with the direct solver, timing each phase.
+pub fn direct_profile(scene: &Scene) -> Result<DirectProfile> {
+    let model = Model::from_scene(scene)?;
+    let mut solver = DirectSolver::new(&model)?;
+    let b = model.rhs(&model.load_cases[0]);
+    let t = Instant::now();
+    let eq = solver.solve(&model, &b)?;
+    let solve_s = t.elapsed().as_secs_f64();
+    let st = solver.stats().clone();
+    let bytes = (st.nnz_k * 16 + (st.n + 1) * 8 + st.nnz_l * 8) as u64;
+    Ok(DirectProfile {
+        dofs: st.n,
+        nnz_k: st.nnz_k,
+        nnz_l: st.nnz_l,
+        assembly_s: st.assembly_s,
+        ordering_s: st.ordering_s,
+        factor_s: st.factor_s,
+        solve_s,
+        active_set_steps: eq.iterations,
+        overhead_ratio: (st.assembly_s + st.ordering_s + solve_s) / st.factor_s.max(1e-12),
+        matrix_and_factor_bytes: bytes,
+        peak_bytes: peak_memory_bytes(),
+    })
+}
+
+/// Cost of the DD iteration on one scene and decomposition.
+#[derive(Debug, Clone, Serialize)]
+pub struct DdProfile {
+    pub dofs: usize,
+    pub subdomains: usize,
+    pub threads: usize,
+    pub macro_unknowns: usize,
+    pub kernel_unknowns: usize,
+    pub setup_s: f64,
+    /// Time of one iteration (difference of two runs, divided).
+    pub iteration_s: f64,
+    /// One forward and backward substitution with every subdomain factor,
+    /// in parallel over subdomains as in the iteration.
+    pub substitution_s: f64,
+    /// `iteration_s / substitution_s` (target ≤ 1.5).
+    pub ratio: f64,
+}
+
+/// Measures per-iteration time against the triangular-solve bound.
+pub fn dd_profile(scene: &Scene, subdomains: usize, iterations: usize) -> Result<DdProfile> {
+    let model = Model::from_scene(scene)?;
+    let dec = decompose(&model, scene, subdomains)?;
+    let t = Instant::now();
+    let mut dd = DdSolver::new(
+        &model,
+        &dec,
+        DdOptions { coarse: true, tolerance: 0.0, max_iterations: 1, search_direction: SearchDirection::Auto },
+    )?;
+    let setup_s = t.elapsed().as_secs_f64();
+    let f = model.load_cases[0].clone();
+    let iterations = iterations.max(2);
+    let run = |dd: &mut DdSolver, k: usize| -> Result<f64> {
+        dd.set_stopping(0.0, k);
+        let t = Instant::now();
+        dd.solve(&f, false, None)?;
+        Ok(t.elapsed().as_secs_f64())
+    };
+    run(&mut dd, 1)?; // warm-up
+    let t1 = run(&mut dd, 1)?;
+    let tk = run(&mut dd, 1 + iterations)?;
+    let iteration_s = ((tk - t1) / iterations as f64).max(0.0);
+    let substitution_s = dd.substitution_time(10);
+    let ns = dd.n_subdomains();
+    let stats = dd.stats();
+    Ok(DdProfile {
+        dofs: model.n_free,
+        subdomains: ns,
+        threads: rayon::current_num_threads(),
+        macro_unknowns: stats.macro_unknowns,
+        kernel_unknowns: stats.kernel_unknowns,
+        setup_s,
+        iteration_s,
+        substitution_s,
+        ratio: iteration_s / substitution_s.max(1e-12),
+    })
+}
