@@ -37,15 +37,24 @@ const BATCH: usize = 32;
 /// cost far more than one factorization of `K` without the slack cables.
 const SCHUR_MAX: usize = 400;
 
-/// Solves `(K − H_S K_S H_Sᵀ) u = b + H_S K_S e0_S`: the structure with its
-/// slack cables removed (their tension is zero), by a fresh factorization.
-fn solve_without_slack(model: &Model, b: &[f64], slack: &[bool], u: &mut [f64]) -> Result<()> {
+/// Stiffness fraction kept by slack cables in a step whose slack set alone
+/// would be a mechanism.
+const SOFT: f64 = 1e-6;
+
+/// Solves `(K − (1−s) H_S K_S H_Sᵀ) u = b + (1−s) H_S K_S e0_S`: the
+/// structure with its slack cables removed (`s = 0`, their tension is zero)
+/// or softened to `s` times their stiffness, by a fresh factorization.
+fn solve_without_slack(model: &Model, b: &[f64], slack: &[bool], soft: f64, u: &mut [f64]) -> Result<()> {
     let mut is_slack = vec![false; model.elements.len()];
     for (c, &e) in model.cables.iter().enumerate() {
         is_slack[e] = slack[c];
     }
     let taut: Vec<usize> = (0..model.elements.len()).filter(|&e| !is_slack[e]).collect();
-    let trip = model.stiffness_triplets(&taut, Some);
+    let mut trip = model.stiffness_triplets(&taut, Some);
+    if soft > 0.0 {
+        let loose: Vec<usize> = (0..model.elements.len()).filter(|&e| is_slack[e]).collect();
+        trip.extend(model.stiffness_triplets(&loose, Some).into_iter().map(|(r, c, v)| (r, c, soft * v)));
+    }
     let k = lower_csc(model.n_free, &trip).map_err(|e| Error::Numerical(format!("{e:?}")))?;
     let mut chol = SparseCholesky::factor(&k, 1).map_err(|e| match e {
         FactorError::Pivot { dof, .. } => {
@@ -61,7 +70,7 @@ fn solve_without_slack(model: &Model, b: &[f64], slack: &[bool], u: &mut [f64]) 
     for (c, &e) in model.cables.iter().enumerate() {
         if slack[c] {
             let el = &model.elements[e];
-            model.add_h(e, el.k * el.e0, u);
+            model.add_h(e, (1.0 - soft) * el.k * el.e0, u);
         }
     }
     chol.solve_in_place(u);
@@ -195,17 +204,36 @@ impl DirectSolver {
         let max_iter = 20 * nc + 100;
         let mut u = u0.clone();
         let mut lambda = vec![0.0; nc];
+        let mut softened;
         for it in 1..=max_iter {
+            let mut mechanism: Option<String> = None;
             let set: Vec<usize> = (0..nc).filter(|&c| slack[c]).collect();
             lambda.iter_mut().for_each(|l| *l = 0.0);
+            // An intermediate set may leave a node with only slack cables: a
+            // mechanism that the final set does not have. Such a step is
+            // taken with the slack cables kept at SOFT times their stiffness
+            // (a guide for the next set); a set the iteration settles on must
+            // solve exactly.
+            softened = false;
+            let mut schur_ok = false;
             if set.len() <= self.schur_max {
-                if !set.is_empty() {
+                if set.is_empty() {
+                    schur_ok = true;
+                } else {
                     self.extend_cache(model, &set);
-                    let mu = self.solve_schur(model, &set, &g0)?;
-                    for (i, &c) in set.iter().enumerate() {
-                        lambda[c] = mu[i] / model.elements[model.cables[c]].k.sqrt();
+                    match self.solve_schur(model, &set, &g0) {
+                        Ok(mu) => {
+                            for (i, &c) in set.iter().enumerate() {
+                                lambda[c] = mu[i] / model.elements[model.cables[c]].k.sqrt();
+                            }
+                            schur_ok = true;
+                        }
+                        Err(Error::Mechanism(m)) => mechanism = Some(m),
+                        Err(e) => return Err(e),
                     }
                 }
+            }
+            if schur_ok {
                 // u = K⁻¹ (b − Σ h_c k_c λ_c)
                 u.copy_from_slice(b);
                 for &c in &set {
@@ -214,7 +242,17 @@ impl DirectSolver {
                 }
                 self.chol.solve_in_place(&mut u);
             } else {
-                solve_without_slack(model, b, &slack, &mut u)?;
+                if mechanism.is_none() {
+                    match solve_without_slack(model, b, &slack, 0.0, &mut u) {
+                        Ok(()) => {}
+                        Err(Error::Mechanism(m)) => mechanism = Some(m),
+                        Err(e) => return Err(e),
+                    }
+                }
+                if mechanism.is_some() {
+                    solve_without_slack(model, b, &slack, SOFT, &mut u)?;
+                    softened = true;
+                }
                 for &c in &set {
                     let e = model.cables[c];
                     lambda[c] = -(model.elongation(e, &u) + model.elements[e].e0);
@@ -244,6 +282,9 @@ impl DirectSolver {
                 }
             }
             if !changed {
+                if softened {
+                    return Err(Error::Mechanism(mechanism.unwrap_or_default()));
+                }
                 for l in lambda.iter_mut() {
                     *l = l.max(0.0);
                 }
