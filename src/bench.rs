@@ -90,7 +90,12 @@ pub fn dd_profile(scene: &Scene, subdomains: usize, iterations: usize) -> Result
     let mut dd = DdSolver::new(
         &model,
         &dec,
-        DdOptions { coarse: true, tolerance: 0.0, max_iterations: 1, search_direction: SearchDirection::Auto },
+        DdOptions {
+            coarse: true,
+            tolerance: 0.0,
+            max_iterations: 1,
+            search_direction: SearchDirection::Auto,
+        },
     )?;
     let setup_s = t.elapsed().as_secs_f64();
     let f = model.load_cases[0].clone();

@@ -67,7 +67,11 @@ pub fn geometric_modes(points: &[[f64; 3]], comp: &[usize]) -> Mat<f64> {
                 let w = q - 3;
                 let mut om = [0.0; 3];
                 om[w] = 1.0;
-                let cr = [om[1] * x[2] - om[2] * x[1], om[2] * x[0] - om[0] * x[2], om[0] * x[1] - om[1] * x[0]];
+                let cr = [
+                    om[1] * x[2] - om[2] * x[1],
+                    om[2] * x[0] - om[0] * x[2],
+                    om[0] * x[1] - om[1] * x[0],
+                ];
                 cr[d]
             }
             6 => (a1[0] * x[0] + a1[1] * x[1] + a1[2] * x[2]) * a1[d],
@@ -148,7 +152,10 @@ impl CoarseProblem {
             check_full_rank(&g, kernel_owner)?;
         }
         let mut matrix = Mat::<f64>::zeros(n, n);
-        let lscale = (0..nf).map(|i| l[(i, i)].abs()).fold(0.0f64, f64::max).max(f64::MIN_POSITIVE);
+        let lscale = (0..nf)
+            .map(|i| l[(i, i)].abs())
+            .fold(0.0f64, f64::max)
+            .max(f64::MIN_POSITIVE);
         for j in 0..nf {
             for i in 0..nf {
                 // Symmetrise: L is assembled from W_Eᵀ Z_E, symmetric up to round-off.

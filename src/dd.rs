@@ -128,7 +128,13 @@ impl<'a> DdProblem<'a> {
                 let n = sd.dofs.len();
                 let mut constant = vec![0.0; n];
                 let mut cables = Vec::new();
-                let local = |d: usize| if d == FIXED { NO_DOF } else { sd.local(d).map_or(NO_DOF, |l| l as u32) };
+                let local = |d: usize| {
+                    if d == FIXED {
+                        NO_DOF
+                    } else {
+                        sd.local(d).map_or(NO_DOF, |l| l as u32)
+                    }
+                };
                 for &e in &sd.elements {
                     let el = &model.elements[e];
                     let dofs = model.element_dofs(e).map(local);
@@ -157,7 +163,13 @@ impl<'a> DdProblem<'a> {
                 (model.coords[node], c)
             })
             .collect();
-        Ok(DdProblem { decomposition: dec, operators, loads, dof_points, n_cables: model.cables.len() })
+        Ok(DdProblem {
+            decomposition: dec,
+            operators,
+            loads,
+            dof_points,
+            n_cables: model.cables.len(),
+        })
     }
 }
 
@@ -266,7 +278,13 @@ impl DdSolver {
     /// Sets up an algebraic problem (already factored operators).
     pub fn from_problem(problem: DdProblem<'_>, opts: DdOptions) -> Result<DdSolver> {
         let t0 = Instant::now();
-        let DdProblem { decomposition: dec, operators, loads, dof_points, n_cables } = problem;
+        let DdProblem {
+            decomposition: dec,
+            operators,
+            loads,
+            dof_points,
+            n_cables,
+        } = problem;
         let ns = dec.len();
         let n_free = dof_points.len();
         let singular: Vec<usize> = operators.iter().filter(|o| o.kernel_dim() > 0).map(|o| o.id).collect();
@@ -281,7 +299,11 @@ impl DdSolver {
                     if singular.len() > 1 { "are" } else { "is" }
                 )
             };
-            return Err(if ns == 1 { Error::Mechanism(what) } else { Error::MethodNotApplicable(what) });
+            return Err(if ns == 1 {
+                Error::Mechanism(what)
+            } else {
+                Error::MethodNotApplicable(what)
+            });
         }
 
         let use_coarse = opts.coarse && !dec.interfaces.is_empty();
@@ -335,9 +357,11 @@ impl DdSolver {
         for (s, (op, load)) in operators.into_iter().zip(loads).enumerate() {
             let sd = &dec.subdomains[s];
             let n = op.n();
-            let ifs: Vec<(usize, bool)> =
-                sd.interfaces.iter().map(|&i| (i, dec.interfaces[i].lo == s)).collect();
-            let SubdomainLoad { constant: prestrain, cables } = load;
+            let ifs: Vec<(usize, bool)> = sd.interfaces.iter().map(|&i| (i, dec.interfaces[i].lo == s)).collect();
+            let SubdomainLoad {
+                constant: prestrain,
+                cables,
+            } = load;
             let r = op.kernel_dim();
             let nc = cables.len();
             subs.push(SubState {
@@ -604,13 +628,19 @@ impl DdSolver {
             it.force.iter_mut().for_each(|f| *f = 0.0);
         }
         if !lambda_max.is_finite() {
-            return Err(Error::Numerical("could not estimate the interface operator's spectrum for d".into()));
+            return Err(Error::Numerical(
+                "could not estimate the interface operator's spectrum for d".into(),
+            ));
         }
         // When the macro space covers (nearly) all of the interface, the
         // projected operator vanishes and only round-off is left to iterate
         // on: cap d by the lumped interface stiffness, the scale of X⁻¹.
         let cap = 0.5;
-        let d = if lambda_max > 0.0 { AUTO_D_FACTOR * 2.0 / lambda_max } else { cap };
+        let d = if lambda_max > 0.0 {
+            AUTO_D_FACTOR * 2.0 / lambda_max
+        } else {
+            cap
+        };
         Ok(d.min(cap))
     }
 
@@ -625,14 +655,21 @@ impl DdSolver {
         progress: Option<&mut dyn FnMut(usize, f64)>,
     ) -> Result<DdOutcome> {
         if f_ext.len() != self.n_free {
-            return Err(Error::input("rhs", None, format!("has {} entries, expected {}", f_ext.len(), self.n_free)));
+            return Err(Error::input(
+                "rhs",
+                None,
+                format!("has {} entries, expected {}", f_ext.len(), self.n_free),
+            ));
         }
         let subs_dofs = &self.dof_maps;
-        self.subs.par_iter_mut().zip(subs_dofs.par_iter()).for_each(|(s, dofs)| {
-            for (l, &d) in dofs.iter().enumerate() {
-                s.b[l] = f_ext[d] * s.inv_mult[l] + s.prestrain[l];
-            }
-        });
+        self.subs
+            .par_iter_mut()
+            .zip(subs_dofs.par_iter())
+            .for_each(|(s, dofs)| {
+                for (l, &d) in dofs.iter().enumerate() {
+                    s.b[l] = f_ext[d] * s.inv_mult[l] + s.prestrain[l];
+                }
+            });
         self.iterate(warm, progress)
     }
 
@@ -645,11 +682,19 @@ impl DdSolver {
         progress: Option<&mut dyn FnMut(usize, f64)>,
     ) -> Result<DdOutcome> {
         if rhs.len() != self.subs.len() {
-            return Err(Error::input("rhs", None, format!("{} subdomain vectors given, expected {}", rhs.len(), self.subs.len())));
+            return Err(Error::input(
+                "rhs",
+                None,
+                format!("{} subdomain vectors given, expected {}", rhs.len(), self.subs.len()),
+            ));
         }
         for (i, (s, r)) in self.subs.iter().zip(rhs).enumerate() {
             if r.len() != s.b.len() {
-                return Err(Error::input("rhs", Some(i), format!("has {} entries, subdomain {i} has {} dofs", r.len(), s.b.len())));
+                return Err(Error::input(
+                    "rhs",
+                    Some(i),
+                    format!("has {} entries, subdomain {i} has {} dofs", r.len(), s.b.len()),
+                ));
             }
         }
         self.subs.par_iter_mut().zip(rhs.par_iter()).for_each(|(s, r)| {
@@ -689,7 +734,13 @@ impl DdSolver {
         // One subdomain without cables: the first global step is exact.
         if self.ifaces.is_empty() && !has_cables {
             converged = true;
-            history.push(HistoryEntry { iteration: 0, time_s: t0.elapsed().as_secs_f64(), indicator: 0.0, jump: None, cable_change: None });
+            history.push(HistoryEntry {
+                iteration: 0,
+                time_s: t0.elapsed().as_secs_f64(),
+                indicator: 0.0,
+                jump: None,
+                cable_change: None,
+            });
         }
         while !converged && iterations < self.opts.max_iterations {
             iterations += 1;
@@ -728,7 +779,10 @@ impl DdSolver {
                 p(iterations, indicator);
             }
             if !indicator.is_finite() || !v2.is_finite() {
-                return Err(Error::Diverged { iteration: iterations, message: "the iterate is no longer finite (NaN or Inf); lower the search direction d".into() });
+                return Err(Error::Diverged {
+                    iteration: iterations,
+                    message: "the iterate is no longer finite (NaN or Inf); lower the search direction d".into(),
+                });
             }
             if indicator > DIVERGENCE_GROWTH * best && iterations > 10 {
                 return Err(Error::Diverged {
@@ -743,7 +797,13 @@ impl DdSolver {
             converged = indicator <= self.opts.tolerance;
         }
         let (u, lambda) = self.assemble();
-        Ok(DdOutcome { u, lambda, converged, iterations, history })
+        Ok(DdOutcome {
+            u,
+            lambda,
+            converged,
+            iterations,
+            history,
+        })
     }
 
     /// `r = b − C Bᵀ F − H k λ`, `y = K⁺ r`, coarse step, `V = y − Z f + R α`.
@@ -797,7 +857,8 @@ impl DdSolver {
                     s.fm[k] = f[c];
                 }
                 let na = s.alpha.len();
-                s.alpha.copy_from_slice(&coarse.kernel_amplitudes()[s.alpha_off..s.alpha_off + na]);
+                s.alpha
+                    .copy_from_slice(&coarse.kernel_amplitudes()[s.alpha_off..s.alpha_off + na]);
                 s.v.copy_from_slice(&s.y);
                 for (k, &fk) in s.fm.iter().enumerate() {
                     if fk != 0.0 {

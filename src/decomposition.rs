@@ -92,8 +92,11 @@ impl Decomposition {
             .elements_of
             .iter()
             .map(|elems| {
-                let mut dofs: Vec<usize> =
-                    elems.iter().flat_map(|&e| model.element_dofs(e)).filter(|&d| d != FIXED).collect();
+                let mut dofs: Vec<usize> = elems
+                    .iter()
+                    .flat_map(|&e| model.element_dofs(e))
+                    .filter(|&d| d != FIXED)
+                    .collect();
                 dofs.sort_unstable();
                 dofs.dedup();
                 dofs
@@ -154,7 +157,14 @@ impl Decomposition {
             subdomains[hi].interfaces.push(id);
             interfaces.push(Interface { lo, hi, start, end: k });
         }
-        Decomposition { partition, subdomains, interfaces, entry_dof, entry_lo_local, entry_hi_local }
+        Decomposition {
+            partition,
+            subdomains,
+            interfaces,
+            entry_dof,
+            entry_lo_local,
+            entry_hi_local,
+        }
     }
 
     /// Number of subdomains.

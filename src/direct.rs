@@ -53,7 +53,12 @@ fn solve_without_slack(model: &Model, b: &[f64], slack: &[bool], soft: f64, u: &
     let mut trip = model.stiffness_triplets(&taut, Some);
     if soft > 0.0 {
         let loose: Vec<usize> = (0..model.elements.len()).filter(|&e| is_slack[e]).collect();
-        trip.extend(model.stiffness_triplets(&loose, Some).into_iter().map(|(r, c, v)| (r, c, soft * v)));
+        trip.extend(
+            model
+                .stiffness_triplets(&loose, Some)
+                .into_iter()
+                .map(|(r, c, v)| (r, c, soft * v)),
+        );
     }
     let k = lower_csc(model.n_free, &trip).map_err(|e| Error::Numerical(format!("{e:?}")))?;
     let mut chol = SparseCholesky::factor(&k, 1).map_err(|e| match e {
@@ -187,7 +192,11 @@ impl DirectSolver {
         let mut u0 = b.to_vec();
         self.chol.solve_in_place(&mut u0);
         if nc == 0 {
-            return Ok(Equilibrium { u: u0, lambda: Vec::new(), iterations: 0 });
+            return Ok(Equilibrium {
+                u: u0,
+                lambda: Vec::new(),
+                iterations: 0,
+            });
         }
         // g_c = e_c(u0) + e0_c: cable strain with every cable taut.
         let g0: Vec<f64> = model
@@ -259,7 +268,9 @@ impl DirectSolver {
                 }
             }
             if u.iter().any(|v| !v.is_finite()) {
-                return Err(Error::Numerical("direct solve produced a non-finite displacement".into()));
+                return Err(Error::Numerical(
+                    "direct solve produced a non-finite displacement".into(),
+                ));
             }
 
             // Violations: slack cables with λ < 0, taut cables with g < 0.
@@ -288,7 +299,11 @@ impl DirectSolver {
                 for l in lambda.iter_mut() {
                     *l = l.max(0.0);
                 }
-                return Ok(Equilibrium { u, lambda, iterations: it });
+                return Ok(Equilibrium {
+                    u,
+                    lambda,
+                    iterations: it,
+                });
             }
             if !murty && !seen.insert(slack.clone()) {
                 murty = true;
@@ -300,12 +315,18 @@ impl DirectSolver {
                 slack = next;
             }
         }
-        Err(Error::Numerical(format!("cable active set did not settle in {max_iter} iterations")))
+        Err(Error::Numerical(format!(
+            "cable active set did not settle in {max_iter} iterations"
+        )))
     }
 
     /// Adds Schur columns for cables of `set` not yet cached.
     fn extend_cache(&mut self, model: &Model, set: &[usize]) {
-        let new: Vec<usize> = set.iter().copied().filter(|&c| self.cache_pos[c] == usize::MAX).collect();
+        let new: Vec<usize> = set
+            .iter()
+            .copied()
+            .filter(|&c| self.cache_pos[c] == usize::MAX)
+            .collect();
         if new.is_empty() {
             return;
         }
@@ -381,4 +402,3 @@ impl DirectSolver {
         Ok((0..m).map(|i| x[(i, 0)]).collect())
     }
 }
-

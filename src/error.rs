@@ -39,17 +39,29 @@ pub enum Error {
 impl Error {
     /// Shorthand for an [`Error::InvalidInput`].
     pub fn input(field: impl Into<String>, index: Option<usize>, message: impl Into<String>) -> Self {
-        Error::InvalidInput { field: field.into(), index, message: message.into() }
+        Error::InvalidInput {
+            field: field.into(),
+            index,
+            message: message.into(),
+        }
     }
 }
 
 impl fmt::Display for Error {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
-            Error::InvalidInput { field, index: Some(i), message } => {
+            Error::InvalidInput {
+                field,
+                index: Some(i),
+                message,
+            } => {
                 write!(f, "invalid input: {field}[{i}]: {message}")
             }
-            Error::InvalidInput { field, index: None, message } => {
+            Error::InvalidInput {
+                field,
+                index: None,
+                message,
+            } => {
                 write!(f, "invalid input: {field}: {message}")
             }
             Error::Parse(m) => write!(f, "cannot parse scene: {m}"),

@@ -12,11 +12,11 @@
 //! regularised supernodal pivots wrongly; see shared notes).
 
 use faer::dyn_stack::{MemBuffer, MemStack};
-use faer::reborrow::ReborrowMut;
 use faer::linalg::cholesky::llt::factor::LltRegularization;
+use faer::reborrow::ReborrowMut;
 use faer::sparse::linalg::cholesky::{
-    factorize_symbolic_cholesky, CholeskySymbolicParams, LltRef, SymbolicCholesky,
-    SymbolicCholeskyRaw, SymmetricOrdering,
+    factorize_symbolic_cholesky, CholeskySymbolicParams, LltRef, SymbolicCholesky, SymbolicCholeskyRaw,
+    SymmetricOrdering,
 };
 use faer::sparse::SparseColMat;
 use faer::{Conj, MatMut, Par, Side, Spec};
@@ -56,7 +56,10 @@ pub struct FactorTimings {
 
 impl std::fmt::Debug for SparseCholesky {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("SparseCholesky").field("n", &self.n).field("nnz_l", &self.nnz_l()).finish()
+        f.debug_struct("SparseCholesky")
+            .field("n", &self.n)
+            .field("nnz_l", &self.nnz_l())
+            .finish()
     }
 }
 
@@ -67,7 +70,9 @@ impl std::fmt::Debug for SparseCholesky {
 pub fn lower_csc(n: usize, triplets: &[(usize, usize, f64)]) -> Result<SparseColMat<usize, f64>, FactorError> {
     use faer::sparse::SymbolicSparseColMat;
     if let Some(&(r, c, _)) = triplets.iter().find(|&&(r, c, _)| r >= n || c >= n) {
-        return Err(FactorError::Internal(format!("entry ({r}, {c}) outside a {n}x{n} matrix")));
+        return Err(FactorError::Internal(format!(
+            "entry ({r}, {c}) outside a {n}x{n} matrix"
+        )));
     }
     let mut count = vec![0usize; n + 1];
     for &(_, c, _) in triplets {
@@ -111,7 +116,11 @@ impl SparseCholesky {
     }
 
     /// [`SparseCholesky::factor`] with a caller-chosen pivot ratio threshold.
-    pub fn factor_checked(lower: &SparseColMat<usize, f64>, max_rhs: usize, pivot_ratio: f64) -> Result<Self, FactorError> {
+    pub fn factor_checked(
+        lower: &SparseColMat<usize, f64>,
+        max_rhs: usize,
+        pivot_ratio: f64,
+    ) -> Result<Self, FactorError> {
         let n = lower.nrows();
         let t = std::time::Instant::now();
         let symbolic = factorize_symbolic_cholesky(
@@ -143,7 +152,11 @@ impl SparseCholesky {
             None => (0..n).collect(),
         };
         if let Err(faer::linalg::cholesky::llt::factor::LltError::NonPositivePivot { index }) = res {
-            return Err(FactorError::Pivot { dof: perm_fwd[index.min(n - 1)], ratio: 0.0, negative: true });
+            return Err(FactorError::Pivot {
+                dof: perm_fwd[index.min(n - 1)],
+                ratio: 0.0,
+                negative: true,
+            });
         }
         let max_rhs = max_rhs.max(1);
         let req = symbolic.solve_in_place_scratch::<f64>(max_rhs, par);
@@ -161,7 +174,12 @@ impl SparseCholesky {
     }
 
     /// Compares each pivot `L_jj²` with `A_jj` (both in permuted order).
-    fn check_pivots(&self, lower: &SparseColMat<usize, f64>, perm_fwd: &[usize], pivot_ratio: f64) -> Result<(), FactorError> {
+    fn check_pivots(
+        &self,
+        lower: &SparseColMat<usize, f64>,
+        perm_fwd: &[usize],
+        pivot_ratio: f64,
+    ) -> Result<(), FactorError> {
         let mut adiag = vec![0.0; self.n];
         let a = lower.as_ref();
         for j in 0..self.n {
@@ -180,7 +198,11 @@ impl SparseCholesky {
             let ad = adiag[orig].max(f64::MIN_POSITIVE);
             let ratio = (l * l) / ad;
             if !(ratio >= pivot_ratio) || adiag[orig] <= pivot_ratio * scale * 1e-4 {
-                return Err(FactorError::Pivot { dof: orig, ratio, negative: false });
+                return Err(FactorError::Pivot {
+                    dof: orig,
+                    ratio,
+                    negative: false,
+                });
             }
         }
         Ok(())
@@ -313,7 +335,11 @@ pub fn scan_pivots(lower: &SparseColMat<usize, f64>, ratio: f64) -> Result<Pivot
             &mut values,
             lower.as_ref(),
             Side::Lower,
-            LdltRegularization { dynamic_regularization_signs: None, dynamic_regularization_delta: delta, dynamic_regularization_epsilon: eps },
+            LdltRegularization {
+                dynamic_regularization_signs: None,
+                dynamic_regularization_delta: delta,
+                dynamic_regularization_epsilon: eps,
+            },
             Par::Seq,
             MemStack::new(&mut buf),
             Spec::default(),
@@ -330,7 +356,8 @@ pub fn scan_pivots(lower: &SparseColMat<usize, f64>, ratio: f64) -> Result<Pivot
         if dp.abs() == delta {
             scan.negligible.push(orig);
         } else if dp < 0.0 {
-            scan.negative.push((orig, dp / adiag[orig].abs().max(f64::MIN_POSITIVE)));
+            scan.negative
+                .push((orig, dp / adiag[orig].abs().max(f64::MIN_POSITIVE)));
         }
     }
     scan.negligible.sort_unstable();

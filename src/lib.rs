@@ -1,14 +1,19 @@
 //! nsdd: multilevel domain decomposition for nonsmooth discrete structures.
-pub mod error;
-pub mod capi;
+//!
+//! See the README for the method, the command line and the C ABI.
+// Index loops mirror the formulas of DESIGN.md in the numerical code, and
+// `!(x > 0.0)` is the deliberate NaN-catching form of a positivity check.
+#![allow(clippy::needless_range_loop, clippy::neg_cmp_op_on_partial_ord)]
 pub mod bench;
+pub mod capi;
 pub mod coarse;
 pub mod dd;
 pub mod decomposition;
 pub mod direct;
+pub mod error;
 pub mod factor;
-pub mod kernels;
 pub mod generate;
+pub mod kernels;
 pub mod model;
 pub mod partition;
 pub mod report;

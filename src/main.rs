@@ -616,7 +616,18 @@ fn cmd_bench(a: BenchArgs) -> Result<i32> {
     if a.what == "direct" {
         println!(
             "{:>6} {:>9} {:>11} {:>11} {:>9} {:>9} {:>9} {:>9} {:>6} {:>9} {:>10} {:>10}",
-            "size", "dofs", "nnz(K)", "nnz(L)", "assembly", "ordering", "factor", "solve", "steps", "overhead", "K+L MiB", "peak MiB"
+            "size",
+            "dofs",
+            "nnz(K)",
+            "nnz(L)",
+            "assembly",
+            "ordering",
+            "factor",
+            "solve",
+            "steps",
+            "overhead",
+            "K+L MiB",
+            "peak MiB"
         );
         for &n in &a.sizes {
             let p = nsdd::bench::direct_profile(&scene_of(n))?;

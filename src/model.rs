@@ -78,8 +78,9 @@ impl Model {
     pub fn from_scene(scene: &Scene) -> Result<Model> {
         scene.validate()?;
         let nn = scene.nodes.x.len();
-        let coords: Vec<[f64; 3]> =
-            (0..nn).map(|i| [scene.nodes.x[i], scene.nodes.y[i], scene.nodes.z[i]]).collect();
+        let coords: Vec<[f64; 3]> = (0..nn)
+            .map(|i| [scene.nodes.x[i], scene.nodes.y[i], scene.nodes.z[i]])
+            .collect();
 
         let mut blocked = vec![[false; 3]; nn];
         for (i, (&node, dofs)) in scene.supports.node.iter().zip(&scene.supports.dofs).enumerate() {
@@ -127,7 +128,7 @@ impl Model {
         let mut effects = scene.effects;
         let mut notes = Vec::new();
         let ne = scene.elements.a.len();
-        let has_cables = scene.elements.kind.iter().any(|k| *k == ElementKind::Cable);
+        let has_cables = scene.elements.kind.contains(&ElementKind::Cable);
         let t0_of = |e: usize| scene.elements.t0.get(e).copied().unwrap_or(0.0);
         let has_t0 = (0..ne).any(|e| t0_of(e) != 0.0);
         if effects.unilateral_cables && !has_cables {
@@ -147,7 +148,11 @@ impl Model {
         let mut cables = Vec::new();
         for e in 0..ne {
             let (a, b) = (scene.elements.a[e], scene.elements.b[e]);
-            let d = [coords[b][0] - coords[a][0], coords[b][1] - coords[a][1], coords[b][2] - coords[a][2]];
+            let d = [
+                coords[b][0] - coords[a][0],
+                coords[b][1] - coords[a][1],
+                coords[b][2] - coords[a][2],
+            ];
             let length = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
             let dir = [d[0] / length, d[1] / length, d[2] / length];
             let k = scene.elements.ea[e] / length;
@@ -159,7 +164,18 @@ impl Model {
             if unilateral {
                 cables.push(e);
             }
-            elements.push(Element { a, b, dir, length, k, t0: t0_eff, e0, kind, unilateral, geo });
+            elements.push(Element {
+                a,
+                b,
+                dir,
+                length,
+                k,
+                t0: t0_eff,
+                e0,
+                kind,
+                unilateral,
+                geo,
+            });
         }
 
         let mut model = Model {
@@ -193,7 +209,7 @@ impl Model {
             }
         }
         model.load_cases.push(f0);
-        model.load_case_names.push(if scene.load_cases.is_empty() { "loads".into() } else { "loads".into() });
+        model.load_case_names.push("loads".into());
         for lc in &scene.load_cases {
             let f = model.nodal_forces(&lc.node, &lc.fx, &lc.fy, &lc.fz);
             model.load_cases.push(f);
@@ -280,8 +296,7 @@ impl Model {
         for &e in elements {
             let g = self.elements[e].block();
             let dofs = self.element_dofs(e);
-            let loc: [Option<usize>; 6] =
-                std::array::from_fn(|i| if dofs[i] == FIXED { None } else { local(dofs[i]) });
+            let loc: [Option<usize>; 6] = std::array::from_fn(|i| if dofs[i] == FIXED { None } else { local(dofs[i]) });
             for i in 0..6 {
                 let Some(r) = loc[i] else { continue };
                 for j in 0..6 {

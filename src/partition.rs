@@ -69,6 +69,18 @@ impl Partition {
                 format!("has {} entries but the scene has {ne} elements", subdomain.len()),
             ));
         }
+        // A subdomain needs at least one element, so ids are below the
+        // element count (this also bounds the arrays sized from them).
+        if let Some(i) = subdomain.iter().position(|&s| s >= ne) {
+            return Err(Error::input(
+                "elements.subdomain",
+                Some(i),
+                format!(
+                    "subdomain id {} is not below the number of elements ({ne})",
+                    subdomain[i]
+                ),
+            ));
+        }
         let n_parts = subdomain.iter().max().map_or(0, |m| m + 1);
         let mut count = vec![0usize; n_parts];
         for &s in subdomain {

@@ -106,7 +106,9 @@ impl std::str::FromStr for Method {
             "direct" => Ok(Method::Direct),
             "monolevel" => Ok(Method::Monolevel),
             "multilevel" => Ok(Method::Multilevel),
-            _ => Err(format!("unknown method '{s}' (expected direct, monolevel or multilevel)")),
+            _ => Err(format!(
+                "unknown method '{s}' (expected direct, monolevel or multilevel)"
+            )),
         }
     }
 }
@@ -320,7 +322,12 @@ fn check_nodes(field: &str, v: &[usize], n_nodes: usize) -> Result<()> {
 fn check_force_arrays(prefix: &str, node: &[usize], fx: &[f64], fy: &[f64], fz: &[f64], n_nodes: usize) -> Result<()> {
     for (name, arr) in [("fx", fx), ("fy", fy), ("fz", fz)] {
         if !arr.is_empty() {
-            check_len(&format!("{prefix}.{name}"), arr.len(), node.len(), &format!("{prefix}.node"))?;
+            check_len(
+                &format!("{prefix}.{name}"),
+                arr.len(),
+                node.len(),
+                &format!("{prefix}.node"),
+            )?;
         }
         check_finite(&format!("{prefix}.{name}"), arr)?;
     }
@@ -365,7 +372,11 @@ impl Scene {
         check_finite("elements.t0", &el.t0)?;
         check_finite("elements.mass_per_length", &el.mass_per_length)?;
         if let Some(i) = el.ea.iter().position(|&v| v <= 0.0) {
-            return Err(Error::input("elements.ea", Some(i), format!("must be positive, got {}", el.ea[i])));
+            return Err(Error::input(
+                "elements.ea",
+                Some(i),
+                format!("must be positive, got {}", el.ea[i]),
+            ));
         }
         if let Some(i) = el.mass_per_length.iter().position(|&v| v < 0.0) {
             return Err(Error::input(
@@ -388,7 +399,12 @@ impl Scene {
             }
         }
 
-        check_len("supports.dofs", self.supports.dofs.len(), self.supports.node.len(), "supports.node")?;
+        check_len(
+            "supports.dofs",
+            self.supports.dofs.len(),
+            self.supports.node.len(),
+            "supports.node",
+        )?;
         check_nodes("supports.node", &self.supports.node, n)?;
         for (i, d) in self.supports.dofs.iter().enumerate() {
             if d.is_empty() || d.chars().any(|c| !matches!(c, 'x' | 'y' | 'z')) {
@@ -399,7 +415,14 @@ impl Scene {
                 ));
             }
         }
-        check_force_arrays("loads", &self.loads.node, &self.loads.fx, &self.loads.fy, &self.loads.fz, n)?;
+        check_force_arrays(
+            "loads",
+            &self.loads.node,
+            &self.loads.fx,
+            &self.loads.fy,
+            &self.loads.fz,
+            n,
+        )?;
         for (c, lc) in self.load_cases.iter().enumerate() {
             check_force_arrays(&format!("load_cases[{c}]"), &lc.node, &lc.fx, &lc.fy, &lc.fz, n)?;
         }
@@ -428,7 +451,11 @@ impl Scene {
         }
         let s = &self.solver;
         if !(s.tolerance > 0.0 && s.tolerance.is_finite()) {
-            return Err(Error::input("solver.tolerance", None, format!("must be positive, got {}", s.tolerance)));
+            return Err(Error::input(
+                "solver.tolerance",
+                None,
+                format!("must be positive, got {}", s.tolerance),
+            ));
         }
         if s.subdomains == 0 {
             return Err(Error::input("solver.subdomains", None, "must be at least 1"));
@@ -438,7 +465,11 @@ impl Scene {
         }
         if let SearchDirection::Value(d) = s.search_direction {
             if !(d > 0.0 && d.is_finite()) {
-                return Err(Error::input("solver.search_direction", None, format!("must be positive, got {d}")));
+                return Err(Error::input(
+                    "solver.search_direction",
+                    None,
+                    format!("must be positive, got {d}"),
+                ));
             }
         }
         Ok(())
@@ -512,7 +543,10 @@ impl SceneBuilder {
     pub fn new(name: impl Into<String>) -> Self {
         let mut scene = Scene::default();
         scene.scene.name = name.into();
-        SceneBuilder { scene, bad_prestress: None }
+        SceneBuilder {
+            scene,
+            bad_prestress: None,
+        }
     }
 
     /// Like [`SceneBuilder::new`], reserving room for `nodes` nodes and
@@ -642,7 +676,10 @@ impl SceneBuilder {
             return Err(Error::input(
                 "elements.t0",
                 Some(e),
-                format!("prestress given for element {e}, but the scene has {} elements", self.n_elements()),
+                format!(
+                    "prestress given for element {e}, but the scene has {} elements",
+                    self.n_elements()
+                ),
             ));
         }
         let scene = self.build();

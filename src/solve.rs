@@ -49,6 +49,34 @@ pub struct SolveOptions {
 }
 
 impl SolveOptions {
+    /// Checks the settings like the scene's `[solver]` section is checked.
+    pub fn validate(&self) -> Result<()> {
+        use crate::error::Error;
+        if !(self.tolerance > 0.0 && self.tolerance.is_finite()) {
+            return Err(Error::input(
+                "solver.tolerance",
+                None,
+                format!("must be positive, got {}", self.tolerance),
+            ));
+        }
+        if self.subdomains == 0 {
+            return Err(Error::input("solver.subdomains", None, "must be at least 1"));
+        }
+        if self.max_iterations == 0 {
+            return Err(Error::input("solver.max_iterations", None, "must be at least 1"));
+        }
+        if let SearchDirection::Value(d) = self.search_direction {
+            if !(d > 0.0 && d.is_finite()) {
+                return Err(Error::input(
+                    "solver.search_direction",
+                    None,
+                    format!("must be positive, got {d}"),
+                ));
+            }
+        }
+        Ok(())
+    }
+
     /// The scene's own `[solver]` settings.
     pub fn from_scene(scene: &Scene) -> SolveOptions {
         let s = &scene.solver;
@@ -67,7 +95,7 @@ pub type Progress<'a> = Option<&'a mut dyn FnMut(usize, f64)>;
 
 /// A set-up solver of either kind, reusable over load cases.
 pub enum Prepared {
-    Direct(DirectSolver),
+    Direct(Box<DirectSolver>),
     Dd(Box<DdSolver>, Decomposition),
 }
 
@@ -84,7 +112,7 @@ pub fn decompose(model: &Model, scene: &Scene, subdomains: usize) -> Result<Deco
 /// Sets up the solver for `model` (factorizations, coarse problem).
 pub fn prepare(model: &Model, scene: &Scene, opts: &SolveOptions) -> Result<Prepared> {
     Ok(match opts.method {
-        Method::Direct => Prepared::Direct(DirectSolver::new(model)?),
+        Method::Direct => Prepared::Direct(Box::new(DirectSolver::new(model)?)),
         Method::Monolevel | Method::Multilevel => {
             let dec = decompose(model, scene, opts.subdomains)?;
             let dd = DdSolver::new(
@@ -125,12 +153,20 @@ impl Prepared {
                     jump: None,
                     cable_change: None,
                 }];
-                Ok(State { equilibrium: eq, converged: true, history })
+                Ok(State {
+                    equilibrium: eq,
+                    converged: true,
+                    history,
+                })
             }
             Prepared::Dd(dd, _) => {
                 let out = dd.solve(f_ext, warm, progress)?;
                 Ok(State {
-                    equilibrium: Equilibrium { u: out.u, lambda: out.lambda, iterations: out.iterations },
+                    equilibrium: Equilibrium {
+                        u: out.u,
+                        lambda: out.lambda,
+                        iterations: out.iterations,
+                    },
                     converged: out.converged,
                     history: out.history,
                 })
@@ -197,6 +233,7 @@ pub fn solve(scene: &Scene, opts: &SolveOptions) -> Result<SolveResult> {
 /// [`solve`] with a progress callback.
 pub fn solve_with_progress(scene: &Scene, opts: &SolveOptions, mut progress: Progress<'_>) -> Result<SolveResult> {
     let t_setup = Instant::now();
+    opts.validate()?;
     let model = Model::from_scene(scene)?;
     let mut prepared = prepare(&model, scene, opts)?;
     let setup = t_setup.elapsed().as_secs_f64();
@@ -208,17 +245,34 @@ pub fn solve_with_progress(scene: &Scene, opts: &SolveOptions, mut progress: Pro
         for k in 1..=path.steps {
             let factor = path.final_factor * k as f64 / path.steps as f64;
             let f: Vec<f64> = model.load_cases[0].iter().map(|v| v * factor).collect();
-            let st = prepared.solve(&model, &f, k > 1, progress.as_deref_mut().map(|p| p as &mut dyn FnMut(usize, f64)))?;
-            steps.push(case_result(&model, &format!("step {k}"), factor, &st, slack_threshold(opts)));
+            let st = prepared.solve(
+                &model,
+                &f,
+                k > 1,
+                progress.as_deref_mut().map(|p| p as &mut dyn FnMut(usize, f64)),
+            )?;
+            steps.push(case_result(
+                &model,
+                &format!("step {k}"),
+                factor,
+                &st,
+                slack_threshold(opts),
+            ));
             top = Some(st);
         }
     } else {
-        top = Some(prepared.solve(&model, &model.load_cases[0], false, progress.as_deref_mut().map(|p| p as &mut dyn FnMut(usize, f64)))?);
+        top = Some(prepared.solve(&model, &model.load_cases[0], false, progress)?);
     }
     let mut load_cases = Vec::new();
     for c in 1..model.load_cases.len() {
         let st = prepared.solve(&model, &model.load_cases[c], false, None)?;
-        load_cases.push(case_result(&model, &model.load_case_names[c], 1.0, &st, slack_threshold(opts)));
+        load_cases.push(case_result(
+            &model,
+            &model.load_case_names[c],
+            1.0,
+            &st,
+            slack_threshold(opts),
+        ));
     }
     let top = top.expect("at least one solve");
     let main = case_result(&model, "loads", 1.0, &top, slack_threshold(opts));
@@ -238,7 +292,10 @@ pub fn solve_with_progress(scene: &Scene, opts: &SolveOptions, mut progress: Pro
         tensions: main.tensions,
         slack: main.slack,
         history: top.history,
-        timings_s: Timings { setup, solve: t_solve.elapsed().as_secs_f64() },
+        timings_s: Timings {
+            setup,
+            solve: t_solve.elapsed().as_secs_f64(),
+        },
         search_direction: d,
         notes: model.notes.clone(),
         load_cases,

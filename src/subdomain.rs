@@ -81,7 +81,11 @@ impl SubdomainOperator {
         let n = stiffness.nrows();
         if let Some(r) = kernel {
             if r.nrows() != n {
-                return Err(Error::input("kernel", Some(id), format!("has {} rows, the subdomain has {n} dofs", r.nrows())));
+                return Err(Error::input(
+                    "kernel",
+                    Some(id),
+                    format!("has {} rows, the subdomain has {n} dofs", r.nrows()),
+                ));
             }
         }
         let mut op = Self::factor_matrix(id, stiffness, max_rhs, name)?;
@@ -91,7 +95,11 @@ impl SubdomainOperator {
                 return Err(Error::input(
                     "kernel",
                     Some(id),
-                    format!("given kernel has rank {} but the matrix has a kernel of dimension {}", q.ncols(), op.kernel_dim()),
+                    format!(
+                        "given kernel has rank {} but the matrix has a kernel of dimension {}",
+                        q.ncols(),
+                        op.kernel_dim()
+                    ),
                 ));
             }
             if q.ncols() > 0 {
@@ -102,7 +110,11 @@ impl SubdomainOperator {
                     sym_matvec(&op.stiffness, &col, &mut kr);
                     let res = kr.iter().map(|v| v * v).sum::<f64>().sqrt() / scale;
                     if !(res < KERNEL_TOL) {
-                        return Err(Error::input("kernel", Some(id), format!("column {j} is not in the kernel (‖K r‖/‖K‖ = {res:.1e})")));
+                        return Err(Error::input(
+                            "kernel",
+                            Some(id),
+                            format!("column {j} is not in the kernel (‖K r‖/‖K‖ = {res:.1e})"),
+                        ));
                     }
                 }
                 op.kernel = q;
@@ -120,7 +132,13 @@ impl SubdomainOperator {
         let n = stiffness.nrows();
         match SparseCholesky::factor_checked(&stiffness, max_rhs, SUBDOMAIN_PIVOT_RATIO) {
             Ok(chol) => {
-                return Ok(SubdomainOperator { id, stiffness, chol, fixing: Vec::new(), kernel: Mat::zeros(n, 0) })
+                return Ok(SubdomainOperator {
+                    id,
+                    stiffness,
+                    chol,
+                    fixing: Vec::new(),
+                    kernel: Mat::zeros(n, 0),
+                })
             }
             Err(FactorError::Internal(m)) => return Err(Error::Numerical(format!("subdomain {id}: {m}"))),
             Err(FactorError::Pivot { .. }) => {}
@@ -142,7 +160,8 @@ impl SubdomainOperator {
                 name(dof)
             ),
         };
-        let scan = scan_pivots(&stiffness, SUBDOMAIN_PIVOT_RATIO).map_err(|e| Error::Numerical(format!("subdomain {id}: {e:?}")))?;
+        let scan = scan_pivots(&stiffness, SUBDOMAIN_PIVOT_RATIO)
+            .map_err(|e| Error::Numerical(format!("subdomain {id}: {e:?}")))?;
         if let Some(&(dof, ratio)) = scan.negative.iter().find(|(_, r)| *r < -1e-10) {
             return Err(indefinite(dof, format!("indefinite (pivot ratio {ratio:.2e})")));
         }
@@ -150,7 +169,10 @@ impl SubdomainOperator {
         if fixing.len() > MAX_KERNEL_DIM {
             return Err(Error::IndefiniteSubdomain {
                 subdomain: id,
-                message: format!("kernel of dimension {} exceeds {MAX_KERNEL_DIM}: the partition cuts it into loose pieces", fixing.len()),
+                message: format!(
+                    "kernel of dimension {} exceeds {MAX_KERNEL_DIM}: the partition cuts it into loose pieces",
+                    fixing.len()
+                ),
             });
         }
         let scale = diag_max(&stiffness);
@@ -170,7 +192,13 @@ impl SubdomainOperator {
             }
         };
         drop(regular);
-        let mut op = SubdomainOperator { id, stiffness, chol, fixing, kernel: Mat::zeros(n, 0) };
+        let mut op = SubdomainOperator {
+            id,
+            stiffness,
+            chol,
+            fixing,
+            kernel: Mat::zeros(n, 0),
+        };
         // R = [−K_rr⁻¹ K_rf; I]
         let r = op.fixing.len();
         let mut cols = vec![0.0; n * r];
@@ -202,7 +230,10 @@ impl SubdomainOperator {
             let res = kr.iter().map(|v| v * v).sum::<f64>().sqrt() / scale;
             if !(res < KERNEL_TOL) {
                 let worst = (0..n).fold(0, |b, i| if col[i].abs() > col[b].abs() { i } else { b });
-                return Err(indefinite(worst, format!("neither regular nor singular (‖K r‖/‖K‖ = {res:.1e})")));
+                return Err(indefinite(
+                    worst,
+                    format!("neither regular nor singular (‖K r‖/‖K‖ = {res:.1e})"),
+                ));
             }
         }
         op.kernel = q;
@@ -318,7 +349,9 @@ pub fn orthonormal_columns(a: &Mat<f64>, rtol: f64) -> Mat<f64> {
     }
     // Unit columns first, so that scale differences between modes do not
     // decide the rank; zero columns are dropped.
-    let norms: Vec<f64> = (0..m).map(|j| (0..n).map(|i| a[(i, j)] * a[(i, j)]).sum::<f64>().sqrt()).collect();
+    let norms: Vec<f64> = (0..m)
+        .map(|j| (0..n).map(|i| a[(i, j)] * a[(i, j)]).sum::<f64>().sqrt())
+        .collect();
     let nmax = norms.iter().fold(0.0f64, |x, &y| x.max(y));
     let keep: Vec<usize> = (0..m).filter(|&j| norms[j] > 1e-14 * nmax && norms[j] > 0.0).collect();
     if keep.is_empty() {

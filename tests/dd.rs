@@ -14,7 +14,13 @@ use nsdd::scene::{Method, SearchDirection};
 use nsdd::solve::{decompose, solve};
 
 fn grid_scene(n: usize, unilateral: bool) -> nsdd::scene::Scene {
-    grid(&GridParams { nx: n, ny: n, t0: if unilateral { 0.1 } else { 0.0 }, unilateral, ..Default::default() })
+    grid(&GridParams {
+        nx: n,
+        ny: n,
+        t0: if unilateral { 0.1 } else { 0.0 },
+        unilateral,
+        ..Default::default()
+    })
 }
 
 #[test]
@@ -38,13 +44,21 @@ fn multilevel_iterations_are_flat_in_the_number_of_subdomains() {
     let it9 = assert_matches_direct(&scene, Method::Multilevel, 9, 1e-8);
     let it16 = assert_matches_direct(&scene, Method::Multilevel, 16, 1e-8);
     // More subdomains must not cost more iterations.
-    assert!(it9.max(it16) as f64 <= 1.5 * it4 as f64, "iterations 4/9/16 subdomains: {it4} {it9} {it16}");
+    assert!(
+        it9.max(it16) as f64 <= 1.5 * it4 as f64,
+        "iterations 4/9/16 subdomains: {it4} {it9} {it16}"
+    );
 }
 
 #[test]
 fn tensegrity_grids_match_direct() {
     for unilateral in [false, true] {
-        let mut scene = tensegrity(&TensegrityParams { nx: 3, ny: 3, unilateral, ..Default::default() });
+        let mut scene = tensegrity(&TensegrityParams {
+            nx: 3,
+            ny: 3,
+            unilateral,
+            ..Default::default()
+        });
         // With geometric stiffness, the compressed struts can make a
         // subdomain matrix indefinite although the whole one is positive
         // definite (DESIGN.md §1): the solver must then name the subdomain.
@@ -113,7 +127,12 @@ fn several_load_cases_reuse_one_setup() {
     let mut dd = DdSolver::new(
         &model,
         &dec,
-        DdOptions { coarse: true, tolerance: 1e-9, max_iterations: 100_000, search_direction: SearchDirection::Auto },
+        DdOptions {
+            coarse: true,
+            tolerance: 1e-9,
+            max_iterations: 100_000,
+            search_direction: SearchDirection::Auto,
+        },
     )
     .unwrap();
     let mut direct = DirectSolver::new(&model).unwrap();
@@ -166,7 +185,10 @@ fn too_large_search_direction_is_reported_as_divergence() {
     match solve(&scene, &o) {
         Err(Error::Diverged { .. }) => {}
         Err(e) => panic!("expected divergence, got {e}"),
-        Ok(r) => panic!("expected divergence, got converged={} after {}", r.converged, r.iterations),
+        Ok(r) => panic!(
+            "expected divergence, got converged={} after {}",
+            r.converged, r.iterations
+        ),
     }
 }
 
@@ -175,7 +197,10 @@ fn history_records_indicator_and_time() {
     let scene = grid_scene(6, true);
     let r = solve(&scene, &opts(Method::Multilevel, 4, 1e-8)).unwrap();
     assert_eq!(r.history.len(), r.iterations);
-    assert!(r.history.windows(2).all(|w| w[1].time_s >= w[0].time_s && w[1].iteration == w[0].iteration + 1));
+    assert!(r
+        .history
+        .windows(2)
+        .all(|w| w[1].time_s >= w[0].time_s && w[1].iteration == w[0].iteration + 1));
     assert!(r.history.last().unwrap().indicator <= 1e-8);
     assert!(r.history.iter().all(|h| h.indicator.is_finite()));
     assert_eq!(r.stages, vec!["interface", "cables", "coarse", "kernel"]);

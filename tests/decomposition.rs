@@ -1,6 +1,8 @@
 //! Decomposition and subdomain operators (issue 3), each checked against a
 //! dense reference computation on small cases.
 
+#![allow(clippy::needless_range_loop)]
+
 mod common;
 
 use common::*;
@@ -15,7 +17,12 @@ use nsdd::partition::Partition;
 use nsdd::scene::{Method, SearchDirection};
 
 fn grid_model(n: usize) -> Model {
-    let scene = grid(&GridParams { nx: n, ny: n, t0: 0.1, ..Default::default() });
+    let scene = grid(&GridParams {
+        nx: n,
+        ny: n,
+        t0: 0.1,
+        ..Default::default()
+    });
     Model::from_scene(&scene).unwrap()
 }
 
@@ -23,7 +30,12 @@ fn multilevel(model: &Model, dec: &Decomposition) -> DdSolver {
     DdSolver::new(
         model,
         dec,
-        DdOptions { coarse: true, tolerance: 1e-8, max_iterations: 1000, search_direction: SearchDirection::Auto },
+        DdOptions {
+            coarse: true,
+            tolerance: 1e-8,
+            max_iterations: 1000,
+            search_direction: SearchDirection::Auto,
+        },
     )
     .unwrap()
 }
@@ -124,7 +136,10 @@ fn kernel_basis_and_generalised_inverse() {
             let res = (&ky - &rhs).norm_l2() / rhs.norm_l2();
             assert!(res < 1e-9, "subdomain {s}: ‖K y − r‖/‖r‖ = {res:e}");
         }
-        assert!(singular > 0, "expected floating subdomains or mechanisms with {parts} parts");
+        assert!(
+            singular > 0,
+            "expected floating subdomains or mechanisms with {parts} parts"
+        );
     }
 }
 
@@ -210,7 +225,11 @@ fn coarse_operator_equals_dense_reference() {
             }
             let sign = if is_lo { 1.0 } else { -1.0 };
             for j in it.start..it.end {
-                let l = if is_lo { dec.entry_lo_local[j] } else { dec.entry_hi_local[j] } as usize;
+                let l = if is_lo {
+                    dec.entry_lo_local[j]
+                } else {
+                    dec.entry_hi_local[j]
+                } as usize;
                 for q in 0..blocks[i].ncols() {
                     w[(l, offsets[i] + q)] += sign * blocks[i][(j - it.start, q)];
                 }
@@ -246,7 +265,8 @@ fn gather_scatter_adjoint_identities() {
     kernels::scatter_add(&mut sl, &lo_idx, &f, 1.0);
     kernels::scatter_add(&mut sh, &hi_idx, &f, -1.0);
     let lhs: f64 = jmp.iter().zip(&f).map(|(a, b)| a * b).sum();
-    let rhs: f64 = v.iter().zip(&sl).map(|(a, b)| a * b).sum::<f64>() + w.iter().zip(&sh).map(|(a, b)| a * b).sum::<f64>();
+    let rhs: f64 =
+        v.iter().zip(&sl).map(|(a, b)| a * b).sum::<f64>() + w.iter().zip(&sh).map(|(a, b)| a * b).sum::<f64>();
     assert!((lhs - rhs).abs() < 1e-12 * lhs.abs().max(1.0));
     // Cable projection: λ = max(0, −(e + e0)), returns Σ Δλ².
     let mut lam = vec![0.0, 1.0, 0.5];

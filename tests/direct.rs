@@ -1,6 +1,8 @@
 //! The direct reference solver (issue 2): analytic cases and the KKT
 //! conditions of the convex problem of DESIGN.md §1 on generated scenes.
 
+#![allow(clippy::needless_range_loop)]
+
 mod common;
 
 use common::*;
@@ -65,7 +67,11 @@ fn cable_pair(p: f64) -> Scene {
     b.prestress(a, 2.0).prestress(c, 2.0);
     b.support(0, "xyz").support(2, "xyz").support(1, "yz");
     b.load(1, [p, 0.0, 0.0]);
-    b.effects(Effects { unilateral_cables: true, prestress: true, ..Default::default() });
+    b.effects(Effects {
+        unilateral_cables: true,
+        prestress: true,
+        ..Default::default()
+    });
     b.build()
 }
 
@@ -113,34 +119,72 @@ fn check_kkt(scene: &Scene, r: &nsdd::result::SolveResult) {
             assert!(r.tensions[e] >= 0.0, "cable {e} pushes");
             if r.slack[e] {
                 assert_eq!(r.tensions[e], 0.0);
-                assert!(strain <= 1e-12 * model.length_scale(), "slack cable {e} is stretched: {strain}");
+                assert!(
+                    strain <= 1e-12 * model.length_scale(),
+                    "slack cable {e} is stretched: {strain}"
+                );
             } else {
                 assert!((r.tensions[e] - el.k * strain).abs() <= 1e-9 * tscale.max(el.k * strain.abs()));
             }
         }
     }
     let f = &model.load_cases[0];
-    let res: f64 = internal.iter().zip(f).map(|(a, b)| (a - b) * (a - b)).sum::<f64>().sqrt();
-    assert!(res <= 1e-9 * tscale.max(1.0), "equilibrium residual {res:e} (tension scale {tscale:e})");
+    let res: f64 = internal
+        .iter()
+        .zip(f)
+        .map(|(a, b)| (a - b) * (a - b))
+        .sum::<f64>()
+        .sqrt();
+    assert!(
+        res <= 1e-9 * tscale.max(1.0),
+        "equilibrium residual {res:e} (tension scale {tscale:e})"
+    );
 }
 
 #[test]
 fn kkt_conditions_on_generated_scenes() {
     let scenes = [
-        grid(&GridParams { nx: 8, ny: 8, t0: 0.1, ..Default::default() }),
-        grid(&GridParams { nx: 12, ny: 6, t0: 0.0, load: 2.0, ..Default::default() }),
-        tower(&TowerParams { nx: 2, ny: 2, nz: 6, t0: 0.002, unilateral: true, ..Default::default() }),
+        grid(&GridParams {
+            nx: 8,
+            ny: 8,
+            t0: 0.1,
+            ..Default::default()
+        }),
+        grid(&GridParams {
+            nx: 12,
+            ny: 6,
+            t0: 0.0,
+            load: 2.0,
+            ..Default::default()
+        }),
+        tower(&TowerParams {
+            nx: 2,
+            ny: 2,
+            nz: 6,
+            t0: 0.002,
+            unilateral: true,
+            ..Default::default()
+        }),
     ];
     for scene in &scenes {
         let r = direct(scene);
-        assert!(r.slack.iter().any(|&s| s), "{}: expected slack cables", scene.scene.name);
+        assert!(
+            r.slack.iter().any(|&s| s),
+            "{}: expected slack cables",
+            scene.scene.name
+        );
         check_kkt(scene, &r);
     }
 }
 
 #[test]
 fn large_slack_sets_refactor_and_agree_with_the_schur_path() {
-    let scene = grid(&GridParams { nx: 16, ny: 16, t0: 0.1, ..Default::default() });
+    let scene = grid(&GridParams {
+        nx: 16,
+        ny: 16,
+        t0: 0.1,
+        ..Default::default()
+    });
     let model = Model::from_scene(&scene).unwrap();
     let b = model.rhs(&model.load_cases[0]);
     let mut schur = DirectSolver::new(&model).unwrap();
@@ -160,7 +204,12 @@ fn large_slack_sets_refactor_and_agree_with_the_schur_path() {
 fn energy_is_minimal_at_the_solution() {
     // The solution minimises ½ Σ k (e+e0)² (bars) + ½ Σ k max(0, e+e0)²
     // (cables) − f·u: any perturbation raises it.
-    let scene = grid(&GridParams { nx: 6, ny: 6, t0: 0.1, ..Default::default() });
+    let scene = grid(&GridParams {
+        nx: 6,
+        ny: 6,
+        t0: 0.1,
+        ..Default::default()
+    });
     let model = Model::from_scene(&scene).unwrap();
     let mut solver = DirectSolver::new(&model).unwrap();
     let eq = solver.solve(&model, &model.rhs(&model.load_cases[0])).unwrap();

@@ -10,7 +10,12 @@ use nsdd::scene::{Effects, LoadCase, LoadPath, Method, Scene, SceneBuilder};
 use nsdd::solve::solve;
 
 fn effects(unilateral: bool, prestress: bool, geometric: bool, self_weight: bool) -> Effects {
-    Effects { unilateral_cables: unilateral, prestress, geometric_stiffness: geometric, self_weight }
+    Effects {
+        unilateral_cables: unilateral,
+        prestress,
+        geometric_stiffness: geometric,
+        self_weight,
+    }
 }
 
 #[test]
@@ -85,7 +90,11 @@ fn geometric_stiffness_carries_a_transverse_load_on_a_string() {
     let scene = string_scene(true);
     for (method, n) in [(Method::Direct, 1), (Method::Multilevel, 1), (Method::Multilevel, 2)] {
         let r = solve(&scene, &opts(method, n, 1e-12)).unwrap();
-        assert!((r.displacements[1][2] + 0.01).abs() < 1e-12, "{method:?} {n}: {:?}", r.displacements[1]);
+        assert!(
+            (r.displacements[1][2] + 0.01).abs() < 1e-12,
+            "{method:?} {n}: {:?}",
+            r.displacements[1]
+        );
         assert_eq!(r.slack, vec![false, false]);
     }
     // Without K_G the string is a mechanism transversally.
@@ -96,7 +105,12 @@ fn geometric_stiffness_carries_a_transverse_load_on_a_string() {
 }
 
 fn grid_with_cases() -> Scene {
-    let mut scene = grid(&GridParams { nx: 6, ny: 6, t0: 0.1, ..Default::default() });
+    let mut scene = grid(&GridParams {
+        nx: 6,
+        ny: 6,
+        t0: 0.1,
+        ..Default::default()
+    });
     let node = scene.loads.node.clone();
     scene.load_cases.push(LoadCase {
         name: "uplift".into(),
@@ -118,7 +132,12 @@ fn load_cases_are_solved_on_one_setup_and_equal_separate_solves() {
         assert_eq!(case.name, "uplift");
         let mut alone = scene.clone();
         let lc = alone.load_cases.remove(0);
-        alone.loads = nsdd::scene::Loads { node: lc.node, fx: lc.fx, fy: lc.fy, fz: lc.fz };
+        alone.loads = nsdd::scene::Loads {
+            node: lc.node,
+            fx: lc.fx,
+            fy: lc.fy,
+            fz: lc.fz,
+        };
         let reference = solve(&alone, &opts(Method::Direct, 1, 1e-9)).unwrap();
         assert!(rel_err(&flat(&case.displacements), &flat(&reference.displacements)) < 1e-8);
         assert_eq!(case.slack, reference.slack);
@@ -127,8 +146,17 @@ fn load_cases_are_solved_on_one_setup_and_equal_separate_solves() {
 
 #[test]
 fn load_path_steps_match_direct_solves_at_each_factor() {
-    let mut scene = grid(&GridParams { nx: 6, ny: 6, t0: 0.1, load: 3.0, ..Default::default() });
-    scene.load_path = Some(LoadPath { steps: 4, final_factor: 1.0 });
+    let mut scene = grid(&GridParams {
+        nx: 6,
+        ny: 6,
+        t0: 0.1,
+        load: 3.0,
+        ..Default::default()
+    });
+    scene.load_path = Some(LoadPath {
+        steps: 4,
+        final_factor: 1.0,
+    });
     for (method, n) in [(Method::Direct, 1), (Method::Multilevel, 4)] {
         let r = solve(&scene, &opts(method, n, 1e-9)).unwrap();
         assert_eq!(r.steps.len(), 4);
@@ -137,11 +165,20 @@ fn load_path_steps_match_direct_solves_at_each_factor() {
             assert!((step.load_factor - factor).abs() < 1e-15);
             let mut s = scene.clone();
             s.load_path = None;
-            for v in s.loads.fx.iter_mut().chain(s.loads.fy.iter_mut()).chain(s.loads.fz.iter_mut()) {
+            for v in s
+                .loads
+                .fx
+                .iter_mut()
+                .chain(s.loads.fy.iter_mut())
+                .chain(s.loads.fz.iter_mut())
+            {
                 *v *= factor;
             }
             let reference = solve(&s, &opts(Method::Direct, 1, 1e-9)).unwrap();
-            assert!(rel_err(&flat(&step.displacements), &flat(&reference.displacements)) < 1e-8, "step {k}");
+            assert!(
+                rel_err(&flat(&step.displacements), &flat(&reference.displacements)) < 1e-8,
+                "step {k}"
+            );
             assert_eq!(step.slack, reference.slack, "step {k}");
         }
         // The top level holds the last step.
@@ -169,16 +206,32 @@ fn declared_but_unusable_effects_are_not_run_and_are_reported() {
 
 #[test]
 fn stages_follow_the_scene_and_the_decomposition() {
-    let nonsmooth = grid(&GridParams { nx: 4, ny: 4, t0: 0.1, ..Default::default() });
-    let linear = grid(&GridParams { nx: 4, ny: 4, unilateral: false, ..Default::default() });
+    let nonsmooth = grid(&GridParams {
+        nx: 4,
+        ny: 4,
+        t0: 0.1,
+        ..Default::default()
+    });
+    let linear = grid(&GridParams {
+        nx: 4,
+        ny: 4,
+        unilateral: false,
+        ..Default::default()
+    });
     let stages = |s: &Scene, m, n| solve(s, &opts(m, n, 1e-8)).unwrap().stages;
     assert_eq!(stages(&linear, Method::Direct, 1), vec!["direct"]);
     assert_eq!(stages(&nonsmooth, Method::Direct, 1), vec!["direct", "cables"]);
     // One subdomain: no interface, no coarse step.
     assert_eq!(stages(&linear, Method::Multilevel, 1), Vec::<String>::new());
     assert_eq!(stages(&nonsmooth, Method::Multilevel, 1), vec!["cables"]);
-    assert_eq!(stages(&linear, Method::Multilevel, 4), vec!["interface", "coarse", "kernel"]);
-    assert_eq!(stages(&nonsmooth, Method::Multilevel, 4), vec!["interface", "cables", "coarse", "kernel"]);
+    assert_eq!(
+        stages(&linear, Method::Multilevel, 4),
+        vec!["interface", "coarse", "kernel"]
+    );
+    assert_eq!(
+        stages(&nonsmooth, Method::Multilevel, 4),
+        vec!["interface", "cables", "coarse", "kernel"]
+    );
     // Regular subdomains: no kernel machinery.
     let halves = planar_grid(6, Some(&|_, j| (j >= 3) as usize));
     assert_eq!(stages(&halves, Method::Multilevel, 2), vec!["interface", "coarse"]);

@@ -29,9 +29,26 @@ fn load_ref(name: &str) -> (Scene, Ref) {
             [a[0].as_f64().unwrap(), a[1].as_f64().unwrap(), a[2].as_f64().unwrap()]
         })
         .collect();
-    let tensions = v["tensions"].as_array().unwrap().iter().map(|t| t.as_f64().unwrap()).collect();
-    let slack = v["slack"].as_array().unwrap().iter().map(|t| t.as_bool().unwrap()).collect();
-    (scene, Ref { displacements, tensions, slack })
+    let tensions = v["tensions"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|t| t.as_f64().unwrap())
+        .collect();
+    let slack = v["slack"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|t| t.as_bool().unwrap())
+        .collect();
+    (
+        scene,
+        Ref {
+            displacements,
+            tensions,
+            slack,
+        },
+    )
 }
 
 fn rel_err(a: &[f64], b: &[f64]) -> f64 {
@@ -79,11 +96,18 @@ fn check_dd(name: &str, method: nsdd::scene::Method, subdomains: usize, tol: f64
     opts.tolerance = tol;
     opts.max_iterations = 200_000;
     let res = solve(&scene, &opts).unwrap_or_else(|e| panic!("{name} {subdomains}: {e}"));
-    assert!(res.converged, "{name} with {subdomains} subdomains did not converge in {}", res.iterations);
+    assert!(
+        res.converged,
+        "{name} with {subdomains} subdomains did not converge in {}",
+        res.iterations
+    );
     let flat = |v: &[[f64; 3]]| v.iter().flatten().copied().collect::<Vec<f64>>();
     let eu = rel_err(&flat(&res.displacements), &flat(&r.displacements));
     let et = rel_err(&res.tensions, &r.tensions);
-    eprintln!("{name} {method:?} {subdomains}: {} iterations, eu {eu:.2e} et {et:.2e} d {:?}", res.iterations, res.search_direction);
+    eprintln!(
+        "{name} {method:?} {subdomains}: {} iterations, eu {eu:.2e} et {et:.2e} d {:?}",
+        res.iterations, res.search_direction
+    );
     assert!(eu < 10.0 * tol, "{name} {subdomains}: displacement error {eu}");
     assert!(et < 10.0 * tol, "{name} {subdomains}: tension error {et}");
     assert_eq!(res.slack, r.slack, "{name} {subdomains}: slack set differs");

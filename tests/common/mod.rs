@@ -36,15 +36,31 @@ pub fn assert_matches_direct(scene: &Scene, method: Method, subdomains: usize, t
     let direct = solve(scene, &opts(Method::Direct, 1, tol)).expect("direct solve");
     let dd = solve(scene, &opts(method, subdomains, tol))
         .unwrap_or_else(|e| panic!("{} with {subdomains} subdomains: {e}", scene.scene.name));
-    assert!(dd.converged, "{} with {subdomains} subdomains: not converged after {}", scene.scene.name, dd.iterations);
+    assert!(
+        dd.converged,
+        "{} with {subdomains} subdomains: not converged after {}",
+        scene.scene.name, dd.iterations
+    );
     for v in dd.displacements.iter().flatten().chain(&dd.tensions) {
         assert!(v.is_finite(), "non-finite value in the result");
     }
     let eu = rel_err(&flat(&dd.displacements), &flat(&direct.displacements));
     let et = rel_err(&dd.tensions, &direct.tensions);
-    assert!(eu <= 10.0 * tol, "{} {subdomains}: displacement error {eu:.2e}", scene.scene.name);
-    assert!(et <= 10.0 * tol, "{} {subdomains}: tension error {et:.2e}", scene.scene.name);
-    assert_eq!(dd.slack, direct.slack, "{} {subdomains}: slack sets differ", scene.scene.name);
+    assert!(
+        eu <= 10.0 * tol,
+        "{} {subdomains}: displacement error {eu:.2e}",
+        scene.scene.name
+    );
+    assert!(
+        et <= 10.0 * tol,
+        "{} {subdomains}: tension error {et:.2e}",
+        scene.scene.name
+    );
+    assert_eq!(
+        dd.slack, direct.slack,
+        "{} {subdomains}: slack sets differ",
+        scene.scene.name
+    );
     dd.iterations
 }
 
@@ -98,7 +114,11 @@ pub fn planar_grid(n: usize, user_partition: Option<&dyn Fn(usize, usize) -> usi
 
 /// A cubic lattice of `n × n × n` cells (edges bars, face diagonals cables,
 /// one body diagonal bar), fixed at z = 0, with a lateral top load.
-pub fn cube_lattice(n: usize, unilateral: bool, user_partition: Option<&dyn Fn(usize, usize, usize) -> usize>) -> Scene {
+pub fn cube_lattice(
+    n: usize,
+    unilateral: bool,
+    user_partition: Option<&dyn Fn(usize, usize, usize) -> usize>,
+) -> Scene {
     let mut b = SceneBuilder::new("cube-lattice");
     let m = n + 1;
     let id = |i: usize, j: usize, k: usize| (k * m + j) * m + i;
@@ -117,14 +137,32 @@ pub fn cube_lattice(n: usize, unilateral: bool, user_partition: Option<&dyn Fn(u
                 let cell = user_partition.map(|f| f(i, j, k)).unwrap_or(0);
                 let c = |di: usize, dj: usize, dk: usize| id(i + di, j + dj, k + dk);
                 let edges = [
-                    (c(0, 0, 0), c(1, 0, 0)), (c(0, 1, 0), c(1, 1, 0)), (c(0, 0, 1), c(1, 0, 1)), (c(0, 1, 1), c(1, 1, 1)),
-                    (c(0, 0, 0), c(0, 1, 0)), (c(1, 0, 0), c(1, 1, 0)), (c(0, 0, 1), c(0, 1, 1)), (c(1, 0, 1), c(1, 1, 1)),
-                    (c(0, 0, 0), c(0, 0, 1)), (c(1, 0, 0), c(1, 0, 1)), (c(0, 1, 0), c(0, 1, 1)), (c(1, 1, 0), c(1, 1, 1)),
+                    (c(0, 0, 0), c(1, 0, 0)),
+                    (c(0, 1, 0), c(1, 1, 0)),
+                    (c(0, 0, 1), c(1, 0, 1)),
+                    (c(0, 1, 1), c(1, 1, 1)),
+                    (c(0, 0, 0), c(0, 1, 0)),
+                    (c(1, 0, 0), c(1, 1, 0)),
+                    (c(0, 0, 1), c(0, 1, 1)),
+                    (c(1, 0, 1), c(1, 1, 1)),
+                    (c(0, 0, 0), c(0, 0, 1)),
+                    (c(1, 0, 0), c(1, 0, 1)),
+                    (c(0, 1, 0), c(0, 1, 1)),
+                    (c(1, 1, 0), c(1, 1, 1)),
                 ];
                 let faces = [
-                    (c(0, 0, 0), c(1, 1, 0)), (c(1, 0, 0), c(0, 1, 0)), (c(0, 0, 1), c(1, 1, 1)), (c(1, 0, 1), c(0, 1, 1)),
-                    (c(0, 0, 0), c(1, 0, 1)), (c(1, 0, 0), c(0, 0, 1)), (c(0, 1, 0), c(1, 1, 1)), (c(1, 1, 0), c(0, 1, 1)),
-                    (c(0, 0, 0), c(0, 1, 1)), (c(0, 1, 0), c(0, 0, 1)), (c(1, 0, 0), c(1, 1, 1)), (c(1, 1, 0), c(1, 0, 1)),
+                    (c(0, 0, 0), c(1, 1, 0)),
+                    (c(1, 0, 0), c(0, 1, 0)),
+                    (c(0, 0, 1), c(1, 1, 1)),
+                    (c(1, 0, 1), c(0, 1, 1)),
+                    (c(0, 0, 0), c(1, 0, 1)),
+                    (c(1, 0, 0), c(0, 0, 1)),
+                    (c(0, 1, 0), c(1, 1, 1)),
+                    (c(1, 1, 0), c(0, 1, 1)),
+                    (c(0, 0, 0), c(0, 1, 1)),
+                    (c(0, 1, 0), c(0, 0, 1)),
+                    (c(1, 0, 0), c(1, 1, 1)),
+                    (c(1, 1, 0), c(1, 0, 1)),
                 ];
                 for (a, e) in edges {
                     if seen.insert((a.min(e), a.max(e))) {
@@ -150,7 +188,11 @@ pub fn cube_lattice(n: usize, unilateral: bool, user_partition: Option<&dyn Fn(u
             b.load(id(i, j, n), [0.2, 0.05, -0.1]);
         }
     }
-    b.effects(Effects { unilateral_cables: unilateral, prestress: true, ..Default::default() });
+    b.effects(Effects {
+        unilateral_cables: unilateral,
+        prestress: true,
+        ..Default::default()
+    });
     let mut s = b.build();
     if user_partition.is_some() {
         s.elements.subdomain = part;
