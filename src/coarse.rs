@@ -162,8 +162,10 @@ impl CoarseProblem {
                 matrix[(i, j)] = 0.5 * (l[(i, j)] + l[(j, i)]);
             }
         }
-        // Balance the α block with L's scale: G is dimensionless.
-        let gs = lscale.sqrt();
+        // Balance the α block with L: G is dimensionless, so its block is
+        // scaled by the size of L (the square root left a 1/s imbalance
+        // when coordinates are scaled by s).
+        let gs = lscale;
         for j in 0..na {
             for i in 0..nf {
                 matrix[(i, nf + j)] = -g[(i, j)] * gs;
