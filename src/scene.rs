@@ -334,6 +334,39 @@ fn check_force_arrays(prefix: &str, node: &[usize], fx: &[f64], fy: &[f64], fz: 
     check_nodes(&format!("{prefix}.node"), node, n_nodes)
 }
 
+/// Checks solver settings, whether they come from a scene's `[solver]` or
+/// from options given in code.
+pub(crate) fn check_solver_values(
+    tolerance: f64,
+    subdomains: usize,
+    max_iterations: usize,
+    search_direction: SearchDirection,
+) -> Result<()> {
+    if !(tolerance > 0.0 && tolerance.is_finite()) {
+        return Err(Error::input(
+            "solver.tolerance",
+            None,
+            format!("must be positive, got {tolerance}"),
+        ));
+    }
+    if subdomains == 0 {
+        return Err(Error::input("solver.subdomains", None, "must be at least 1"));
+    }
+    if max_iterations == 0 {
+        return Err(Error::input("solver.max_iterations", None, "must be at least 1"));
+    }
+    if let SearchDirection::Value(d) = search_direction {
+        if !(d > 0.0 && d.is_finite()) {
+            return Err(Error::input(
+                "solver.search_direction",
+                None,
+                format!("must be positive, got {d}"),
+            ));
+        }
+    }
+    Ok(())
+}
+
 impl Scene {
     /// Checks every field; the error names the first bad field and index.
     /// Structural problems (mechanisms) are found later, by the model and
@@ -450,29 +483,7 @@ impl Scene {
             }
         }
         let s = &self.solver;
-        if !(s.tolerance > 0.0 && s.tolerance.is_finite()) {
-            return Err(Error::input(
-                "solver.tolerance",
-                None,
-                format!("must be positive, got {}", s.tolerance),
-            ));
-        }
-        if s.subdomains == 0 {
-            return Err(Error::input("solver.subdomains", None, "must be at least 1"));
-        }
-        if s.max_iterations == 0 {
-            return Err(Error::input("solver.max_iterations", None, "must be at least 1"));
-        }
-        if let SearchDirection::Value(d) = s.search_direction {
-            if !(d > 0.0 && d.is_finite()) {
-                return Err(Error::input(
-                    "solver.search_direction",
-                    None,
-                    format!("must be positive, got {d}"),
-                ));
-            }
-        }
-        Ok(())
+        check_solver_values(s.tolerance, s.subdomains, s.max_iterations, s.search_direction)
     }
 
     /// Reads a scene from TOML text.

@@ -51,30 +51,12 @@ pub struct SolveOptions {
 impl SolveOptions {
     /// Checks the settings like the scene's `[solver]` section is checked.
     pub fn validate(&self) -> Result<()> {
-        use crate::error::Error;
-        if !(self.tolerance > 0.0 && self.tolerance.is_finite()) {
-            return Err(Error::input(
-                "solver.tolerance",
-                None,
-                format!("must be positive, got {}", self.tolerance),
-            ));
-        }
-        if self.subdomains == 0 {
-            return Err(Error::input("solver.subdomains", None, "must be at least 1"));
-        }
-        if self.max_iterations == 0 {
-            return Err(Error::input("solver.max_iterations", None, "must be at least 1"));
-        }
-        if let SearchDirection::Value(d) = self.search_direction {
-            if !(d > 0.0 && d.is_finite()) {
-                return Err(Error::input(
-                    "solver.search_direction",
-                    None,
-                    format!("must be positive, got {d}"),
-                ));
-            }
-        }
-        Ok(())
+        crate::scene::check_solver_values(
+            self.tolerance,
+            self.subdomains,
+            self.max_iterations,
+            self.search_direction,
+        )
     }
 
     /// The scene's own `[solver]` settings.
