@@ -1,0 +1,73 @@
+//! The iteration loop allocates nothing: extra iterations add no heap
+//! allocation (counted with a counting global allocator).
+
+use nsdd::dd::{DdOptions, DdSolver};
+use nsdd::generate::{grid, GridParams};
+use nsdd::model::Model;
+use nsdd::scene::SearchDirection;
+use nsdd::solve::decompose;
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+struct Counting;
+static ALLOCATIONS: AtomicUsize = AtomicUsize::new(0);
+
+unsafe impl GlobalAlloc for Counting {
+    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+        ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
+        unsafe { System.alloc(layout) }
+    }
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        unsafe { System.dealloc(ptr, layout) }
+    }
+    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
+        ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
+        unsafe { System.realloc(ptr, layout, new_size) }
+    }
+}
+
+#[global_allocator]
+static GLOBAL: Counting = Counting;
+
+#[test]
+fn extra_iterations_allocate_nothing() {
+    for unilateral in [false, true] {
+        let scene = grid(&GridParams {
+            nx: 8,
+            ny: 8,
+            unilateral,
+            t0: if unilateral { 0.1 } else { 0.0 },
+            ..Default::default()
+        });
+        let model = Model::from_scene(&scene).unwrap();
+        let dec = decompose(&model, &scene, 4).unwrap();
+        let opts = DdOptions {
+            coarse: true,
+            tolerance: 0.0,
+            max_iterations: 1,
+            search_direction: SearchDirection::Auto,
+        };
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();
+        pool.install(|| {
+            let mut dd = DdSolver::new(&model, &dec, opts.clone()).unwrap();
+            let f = model.load_cases[0].clone();
+            let count = |dd: &mut DdSolver, k: usize| {
+                dd.set_stopping(0.0, k);
+                let before = ALLOCATIONS.load(Ordering::SeqCst);
+                let out = dd.solve(&f, false, None).unwrap();
+                let n = ALLOCATIONS.load(Ordering::SeqCst) - before;
+                drop(out);
+                n
+            };
+            count(&mut dd, 1); // warm-up of the thread pool
+            let one = count(&mut dd, 1);
+            let many = count(&mut dd, 41);
+            assert_eq!(
+                many,
+                one,
+                "40 extra iterations made {} allocations",
+                many as i64 - one as i64
+            );
+        });
+    }
+}
