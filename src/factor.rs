@@ -180,15 +180,7 @@ impl SparseCholesky {
         perm_fwd: &[usize],
         pivot_ratio: f64,
     ) -> Result<(), FactorError> {
-        let mut adiag = vec![0.0; self.n];
-        let a = lower.as_ref();
-        for j in 0..self.n {
-            for (i, v) in a.row_idx_of_col(j).zip(a.val_of_col(j)) {
-                if i == j {
-                    adiag[j] += *v;
-                }
-            }
-        }
+        let adiag = lower_diagonal(lower);
         let scale = adiag.iter().fold(0.0f64, |m, v| m.max(v.abs()));
         let ldiag = l_diagonal(&self.symbolic, &self.l_values);
         for (p, &l) in ldiag.iter().enumerate() {
@@ -307,15 +299,7 @@ pub struct PivotScan {
 pub fn scan_pivots(lower: &SparseColMat<usize, f64>, ratio: f64) -> Result<PivotScan, FactorError> {
     use faer::linalg::cholesky::ldlt::factor::LdltRegularization;
     let n = lower.nrows();
-    let a = lower.as_ref();
-    let mut adiag = vec![0.0; n];
-    for j in 0..n {
-        for (i, v) in a.row_idx_of_col(j).zip(a.val_of_col(j)) {
-            if i == j {
-                adiag[j] += *v;
-            }
-        }
-    }
+    let adiag = lower_diagonal(lower);
     let scale = adiag.iter().fold(0.0f64, |m, v| m.max(v.abs())).max(f64::MIN_POSITIVE);
     // A distinctive value, so regularised pivots can be recognised exactly.
     let delta = scale * (1.0 + 1.0 / 1024.0);
@@ -362,6 +346,21 @@ pub fn scan_pivots(lower: &SparseColMat<usize, f64>, ratio: f64) -> Result<Pivot
     }
     scan.negligible.sort_unstable();
     Ok(scan)
+}
+
+/// Diagonal of the matrix whose lower triangle (CSC) is `lower`
+/// (duplicate entries summed).
+pub fn lower_diagonal(lower: &SparseColMat<usize, f64>) -> Vec<f64> {
+    let a = lower.as_ref();
+    let mut d = vec![0.0; a.ncols()];
+    for (j, dj) in d.iter_mut().enumerate() {
+        for (i, v) in a.row_idx_of_col(j).zip(a.val_of_col(j)) {
+            if i == j {
+                *dj += *v;
+            }
+        }
+    }
+    d
 }
 
 /// `y = A x` for the symmetric matrix whose lower triangle is `lower`.

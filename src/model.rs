@@ -345,23 +345,10 @@ impl Model {
             .collect()
     }
 
-    /// Tensions from displacements and cable slacks (λ indexed like `cables`).
-    /// A slack cable reports exactly 0.
+    /// Tensions from displacements and cable slacks (λ indexed like `cables`):
+    /// a cable with `λ > 0` is slack and reports exactly 0.
     pub fn tensions(&self, u: &[f64], lambda: &[f64]) -> Vec<f64> {
-        let mut t: Vec<f64> = (0..self.elements.len())
-            .map(|e| {
-                let el = &self.elements[e];
-                el.k * (self.elongation(e, u) + el.e0)
-            })
-            .collect();
-        for (c, &e) in self.cables.iter().enumerate() {
-            if lambda[c] > 0.0 {
-                t[e] = 0.0;
-            } else {
-                t[e] = t[e].max(0.0);
-            }
-        }
-        t
+        self.tensions_with_slack(u, &self.slack_flags(u, lambda, 0.0))
     }
 
     /// Per-node displacements (zeros on blocked components).

@@ -13,7 +13,7 @@
 
 use crate::decomposition::SubdomainDofs;
 use crate::error::{Error, Result};
-use crate::factor::{lower_csc, scan_pivots, sym_matvec, FactorError, SparseCholesky};
+use crate::factor::{lower_csc, lower_diagonal, scan_pivots, sym_matvec, FactorError, SparseCholesky};
 use crate::model::Model;
 use faer::sparse::SparseColMat;
 use faer::Mat;
@@ -286,16 +286,7 @@ impl SubdomainOperator {
 
     /// Diagonal of `K_E`.
     pub fn diagonal(&self) -> Vec<f64> {
-        let a = self.stiffness.as_ref();
-        let mut d = vec![0.0; a.ncols()];
-        for j in 0..a.ncols() {
-            for (i, v) in a.row_idx_of_col(j).zip(a.val_of_col(j)) {
-                if i == j {
-                    d[j] += *v;
-                }
-            }
-        }
-        d
+        lower_diagonal(&self.stiffness)
     }
 
     /// `y = K_E x`.
@@ -305,16 +296,10 @@ impl SubdomainOperator {
 }
 
 fn diag_max(lower: &SparseColMat<usize, f64>) -> f64 {
-    let a = lower.as_ref();
-    let mut m = 0.0f64;
-    for j in 0..a.ncols() {
-        for (i, v) in a.row_idx_of_col(j).zip(a.val_of_col(j)) {
-            if i == j {
-                m = m.max(v.abs());
-            }
-        }
-    }
-    m.max(f64::MIN_POSITIVE)
+    lower_diagonal(lower)
+        .iter()
+        .fold(0.0f64, |m, v| m.max(v.abs()))
+        .max(f64::MIN_POSITIVE)
 }
 
 /// Copy of `lower` with the rows and columns of `fixing` zeroed and `scale`
