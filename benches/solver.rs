@@ -15,8 +15,7 @@
 //!   factorization, automatic `d`) with 16 subdomains (with 64 it takes
 //!   seconds: its one measured set-up time is printed, not benched), and
 //!   solves with 16 and 64 subdomains stopped after 1 and 11 iterations,
-//!   and `CoarseProblem::solve` alone at the size of each solver's coarse
-//!   system (see `padded_coarse`).
+//!   and `CoarseProblem::solve` alone on each solver's own coarse problem.
 //! - `dd_iteration`: `DdSolver::solve` with `set_stopping(0.0, k)`, `k = 1`
 //!   and `k = 11`, so per-iteration time = (t(k=11) − t(k=1)) / 10; the
 //!   k = 1 time is the fixed cost of a solve (initial global step, final
@@ -39,8 +38,6 @@ use std::hint::black_box;
 use std::time::{Duration, Instant};
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, SamplingMode, Throughput};
-use faer::Mat;
-use nsdd::coarse::CoarseProblem;
 use nsdd::dd::{DdOptions, DdSolver};
 use nsdd::direct::DirectSolver;
 use nsdd::generate::{grid, GridParams};
@@ -187,17 +184,11 @@ fn dd_coarse(c: &mut Criterion) {
         let case = format!("solve/{dofs}dofs/{subs}sd");
         let what = format!("dd_coarse linear {dofs} dofs {subs} subdomains");
         let mut built = bench_iterations(&mut g, &case, || build_dd(&what, &model, &scene, subs), &f);
-        // The coarse solve alone. `CoarseProblem::solve` is dense (explicit
-        // inverse and refinement matrix-vector products), so its cost depends
-        // only on the size: time it on `[L 0; 0 sI]`, `L` the solver's own
-        // macro operator, padded to the size of its saddle-point system
-        // (macro + kernel unknowns).
-        let mut coarse: Option<CoarseProblem> = None;
+        // The coarse solve alone, on the solver's own coarse problem.
+        let mut dd: Option<DdSolver> = None;
         g.bench_function(BenchmarkId::new("coarse_solve", format!("{dofs}dofs/{subs}sd")), |b| {
-            let cp = coarse.get_or_insert_with(|| {
-                let dd = built.take().unwrap_or_else(|| build_dd(&what, &model, &scene, subs));
-                padded_coarse(&dd)
-            });
+            let dd = dd.get_or_insert_with(|| built.take().unwrap_or_else(|| build_dd(&what, &model, &scene, subs)));
+            let cp = dd.coarse_problem_mut().expect("multilevel solver has a coarse problem");
             b.iter(|| {
                 cp.rhs
                     .iter_mut()
@@ -209,30 +200,6 @@ fn dd_coarse(c: &mut Criterion) {
         });
     }
     g.finish();
-}
-
-/// A coarse problem of the size of `dd`'s (see `dd_coarse`).
-fn padded_coarse(dd: &DdSolver) -> CoarseProblem {
-    let l = dd.coarse_operator().expect("multilevel solver has a coarse problem");
-    let nf = l.nrows();
-    let n = nf + dd.stats().kernel_unknowns;
-    let scale = (0..nf).map(|i| l[(i, i)].abs()).fold(1.0f64, f64::max);
-    let m = Mat::<f64>::from_fn(n, n, |i, j| {
-        if i < nf && j < nf {
-            l[(i, j)]
-        } else if i == j {
-            scale
-        } else {
-            0.0
-        }
-    });
-    let t = Instant::now();
-    let cp = CoarseProblem::new(m, Mat::zeros(n, 0), &[]).unwrap();
-    eprintln!(
-        "coarse problem of size {n}: factorization and inverse {:.3}s",
-        t.elapsed().as_secs_f64()
-    );
-    cp
 }
 
 fn dd_iteration(c: &mut Criterion) {

@@ -6,17 +6,20 @@
 //! kernel modes of both neighbours, then orthonormalised with a rank-revealing
 //! SVD so that `PᵀP = I` even for one-node, collinear and coplanar interfaces.
 //!
-//! [`CoarseProblem`]: the saddle point system
-//! `[L −G; −Gᵀ 0] [f; α] = [Pᵀ J K⁺ r; −Rᵀ r]` (symmetric form). `L` is only
-//! positive semi-definite because of the redundant multipliers at cross
-//! points, so the system is solved through the inverse of a slightly
-//! regularised matrix followed by iterative refinement against the exact
-//! one: the null directions of `L` act on nothing, and the refinement makes
-//! the relevant components exact to round-off.
+//! [`CoarseProblem`]: the saddle point system `L f − G α = Pᵀ J K⁺ r`,
+//! `Gᵀ f = Rᵀ r`, assembled from per-subdomain [`CoarseContribution`]s and
+//! solved through a sparse Cholesky factorization of the (augmented,
+//! regularised) macro block and a small dense Schur complement on `α`. `L`
+//! is only positive semi-definite because of the redundant multipliers at
+//! cross points; those directions act on nothing, and iterative refinement
+//! against the exact system makes the relevant components exact to
+//! round-off.
 
 use crate::error::{Error, Result};
+use crate::factor::{lower_csc, lower_diagonal, sym_matvec, SparseCholesky};
 use crate::subdomain::orthonormal_columns;
 use faer::linalg::solvers::DenseSolveCore;
+use faer::sparse::SparseColMat;
 use faer::Mat;
 
 /// Orthonormal macro basis of every interface.
@@ -117,113 +120,316 @@ impl MacroBasis {
     }
 }
 
-/// The factored coarse saddle-point system.
-#[derive(Debug)]
+/// One subdomain's share of the coarse problem: its block of `L`
+/// (`W_Eᵀ K_E⁺ W_E`) and of `G` (`W_Eᵀ R_E`) on its macro columns.
+#[derive(Debug, Clone)]
+pub struct CoarseContribution {
+    /// Global macro index of each local macro column.
+    pub cols: Vec<usize>,
+    /// `m_E × m_E` block of `L` (symmetric up to round-off).
+    pub l: Mat<f64>,
+    /// `m_E × r_E` block of `G`.
+    pub g: Mat<f64>,
+    /// Offset of this subdomain's kernel amplitudes in `α`.
+    pub alpha_off: usize,
+}
+
+/// The factored coarse saddle-point system
+/// `L f − G α = a`, `Gᵀ f = b` (DESIGN.md §4).
+///
+/// `L` and `G` are block sparse (a subdomain couples only the macro
+/// unknowns of its own interfaces), so the system is solved by a Schur
+/// complement on `α` over a *sparse* Cholesky factorization of the
+/// augmented macro block `L_γ = L + γ G Gᵀ + ε I`:
+/// - the augmentation `γ G Gᵀ` (with `γ = max diag L`, `G` being
+///   dimensionless) makes `L_γ` definite on directions that only `G`
+///   restrains, without changing the solution (`Gᵀ f = b` is imposed);
+/// - `ε = 1e-10 · max diag L` covers the redundant multipliers at cross
+///   points, which act on nothing; two passes of iterative refinement
+///   against the exact system remove the perturbation;
+/// - `S = Gᵀ L_γ⁻¹ G` is small (one row per kernel mode) and kept as a dense
+///   inverse.
+///
+/// Every solve is allocation free.
 pub struct CoarseProblem {
     /// Number of macro unknowns `f`.
     pub n_macro: usize,
     /// Number of kernel unknowns `α`.
     pub n_kernel: usize,
-    matrix: Mat<f64>,
-    inverse: Mat<f64>,
-    /// Right-hand side, written by the caller before [`CoarseProblem::solve`].
+    /// Exact `L` (lower triangle), for the refinement residuals.
+    l_lower: SparseColMat<usize, f64>,
+    /// `G` by columns.
+    g_ptr: Vec<usize>,
+    g_row: Vec<usize>,
+    g_val: Vec<f64>,
+    gamma: f64,
+    factor: SparseCholesky,
+    s_inv: Mat<f64>,
+    /// Right-hand side `[a; b]`, written by the caller before [`CoarseProblem::solve`].
     pub rhs: Vec<f64>,
     /// Solution `[f; α]` after [`CoarseProblem::solve`].
     pub solution: Vec<f64>,
     residual: Vec<f64>,
     correction: Vec<f64>,
-    /// `α = alpha_scale · α̃`: balances the dimensionless `G` against `L`.
-    alpha_scale: f64,
+    work_f: Vec<f64>,
+    work_f2: Vec<f64>,
+    work_a: Vec<f64>,
+    /// Seconds spent assembling and factoring.
+    pub setup_s: f64,
+}
+
+impl std::fmt::Debug for CoarseProblem {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("CoarseProblem")
+            .field("n_macro", &self.n_macro)
+            .field("n_kernel", &self.n_kernel)
+            .field("nnz_factor", &self.factor.nnz_l())
+            .finish()
+    }
 }
 
 /// Refinement passes per coarse solve.
 const REFINEMENTS: usize = 2;
+/// Regularisation of the macro block, relative to its largest diagonal entry.
+const MACRO_REGULARIZATION: f64 = 1e-10;
+/// Columns per batched solve when forming `L_γ⁻¹ G`.
+const SCHUR_BATCH: usize = 32;
 
 impl CoarseProblem {
-    /// Factors `[L −G; −Gᵀ 0]`. `G` must have full column rank, otherwise a
-    /// kernel mode of some subdomain is not restrained by the interfaces and
-    /// the structure is a mechanism (`kernel_owner` names the subdomain of
-    /// each column of `G`).
-    pub fn new(l: Mat<f64>, g: Mat<f64>, kernel_owner: &[usize]) -> Result<CoarseProblem> {
-        let nf = l.nrows();
-        let na = g.ncols();
-        let n = nf + na;
+    /// Assembles and factors the coarse system from the subdomain
+    /// contributions. `G` must have full column rank, otherwise a kernel
+    /// mode of some subdomain is not restrained by the interfaces and the
+    /// structure is a mechanism (`kernel_owner` names the subdomain of each
+    /// column of `G`).
+    pub fn new(
+        n_macro: usize,
+        n_kernel: usize,
+        parts: &[CoarseContribution],
+        kernel_owner: &[usize],
+    ) -> Result<CoarseProblem> {
+        let t0 = std::time::Instant::now();
+        let nf = n_macro;
+        let na = n_kernel;
+        for p in parts {
+            if p.cols.iter().any(|&c| c >= nf) || p.alpha_off + p.g.ncols() > na {
+                return Err(Error::Numerical("coarse contribution outside the coarse system".into()));
+            }
+        }
+        // G by columns (each kernel column belongs to one subdomain).
+        let mut g_cols: Vec<Vec<(usize, f64)>> = vec![Vec::new(); na];
+        for p in parts {
+            for q in 0..p.g.ncols() {
+                let col = &mut g_cols[p.alpha_off + q];
+                for (a, &ca) in p.cols.iter().enumerate() {
+                    let v = p.g[(a, q)];
+                    if v != 0.0 {
+                        col.push((ca, v));
+                    }
+                }
+            }
+        }
+        let mut g_ptr = Vec::with_capacity(na + 1);
+        let mut g_row = Vec::new();
+        let mut g_val = Vec::new();
+        g_ptr.push(0);
+        for col in &mut g_cols {
+            col.sort_unstable_by_key(|&(r, _)| r);
+            for &(r, v) in col.iter() {
+                if g_row.len() > *g_ptr.last().expect("non-empty") && *g_row.last().expect("non-empty") == r {
+                    *g_val.last_mut().expect("non-empty") += v;
+                } else {
+                    g_row.push(r);
+                    g_val.push(v);
+                }
+            }
+            g_ptr.push(g_row.len());
+        }
+        drop(g_cols);
         if na > 0 {
-            check_full_rank(&g, kernel_owner)?;
+            check_full_rank(na, &g_ptr, &g_row, &g_val, nf, kernel_owner)?;
         }
-        let mut matrix = Mat::<f64>::zeros(n, n);
-        let lscale = (0..nf)
-            .map(|i| l[(i, i)].abs())
-            .fold(0.0f64, f64::max)
-            .max(f64::MIN_POSITIVE);
-        for j in 0..nf {
-            for i in 0..nf {
-                // Symmetrise: L is assembled from W_Eᵀ Z_E, symmetric up to round-off.
-                matrix[(i, j)] = 0.5 * (l[(i, j)] + l[(j, i)]);
+
+        // Exact L (symmetrised) and the augmented, regularised L_γ.
+        let mut exact = Vec::new();
+        for p in parts {
+            for (b, &cb) in p.cols.iter().enumerate() {
+                for (a, &ca) in p.cols.iter().enumerate() {
+                    if ca >= cb {
+                        exact.push((ca, cb, 0.5 * (p.l[(a, b)] + p.l[(b, a)])));
+                    }
+                }
             }
         }
-        // Balance the α block with L: G is dimensionless, so its block is
-        // scaled by the size of L (the square root left a 1/s imbalance
-        // when coordinates are scaled by s).
-        let gs = lscale;
-        for j in 0..na {
-            for i in 0..nf {
-                matrix[(i, nf + j)] = -g[(i, j)] * gs;
-                matrix[(nf + j, i)] = -g[(i, j)] * gs;
+        let l_lower = lower_csc(nf, &exact).map_err(|e| Error::Numerical(format!("coarse operator: {e:?}")))?;
+        let ldiag = lower_diagonal(&l_lower);
+        let lscale = ldiag.iter().fold(0.0f64, |m, v| m.max(v.abs())).max(f64::MIN_POSITIVE);
+        if ldiag.iter().any(|v| !v.is_finite()) {
+            return Err(Error::Numerical("the coarse operator is not finite".into()));
+        }
+        let gamma = lscale;
+        let mut aug = exact;
+        for p in parts {
+            // γ G_E G_Eᵀ on the subdomain's own columns: same pattern as L.
+            for (b, &cb) in p.cols.iter().enumerate() {
+                for (a, &ca) in p.cols.iter().enumerate() {
+                    if ca >= cb {
+                        let v: f64 = (0..p.g.ncols()).map(|q| p.g[(a, q)] * p.g[(b, q)]).sum();
+                        if v != 0.0 {
+                            aug.push((ca, cb, gamma * v));
+                        }
+                    }
+                }
             }
         }
-        let mut reg = matrix.clone();
-        for i in 0..nf {
-            reg[(i, i)] += 1e-10 * lscale;
+        aug.extend((0..nf).map(|i| (i, i, MACRO_REGULARIZATION * lscale)));
+        let aug = lower_csc(nf, &aug).map_err(|e| Error::Numerical(format!("coarse operator: {e:?}")))?;
+        let mut factor = SparseCholesky::factor_checked(&aug, SCHUR_BATCH, 0.1 * MACRO_REGULARIZATION * 1e-4)
+            .map_err(|e| Error::Numerical(format!("the coarse problem could not be factored: {e:?}")))?;
+        drop(aug);
+
+        // S = Gᵀ L_γ⁻¹ G, in batches of columns.
+        let mut s = Mat::<f64>::zeros(na, na);
+        let mut block = vec![0.0; nf * SCHUR_BATCH];
+        let mut j0 = 0;
+        while j0 < na {
+            let w = (na - j0).min(SCHUR_BATCH);
+            let blk = &mut block[..nf * w];
+            blk.iter_mut().for_each(|v| *v = 0.0);
+            for c in 0..w {
+                let j = j0 + c;
+                for k in g_ptr[j]..g_ptr[j + 1] {
+                    blk[c * nf + g_row[k]] = g_val[k];
+                }
+            }
+            factor.solve_columns(blk, w);
+            for c in 0..w {
+                let y = &blk[c * nf..(c + 1) * nf];
+                for i in 0..na {
+                    s[(i, j0 + c)] = (g_ptr[i]..g_ptr[i + 1]).map(|k| g_val[k] * y[g_row[k]]).sum();
+                }
+            }
+            j0 += w;
         }
-        let lblt = reg.lblt(faer::Side::Lower);
-        let inverse = lblt.inverse();
-        if inverse.col_iter().any(|c| c.iter().any(|v| !v.is_finite())) {
+        let s_inv = if na > 0 {
+            let sym = Mat::from_fn(na, na, |i, j| 0.5 * (s[(i, j)] + s[(j, i)]));
+            let llt = sym
+                .llt(faer::Side::Lower)
+                .map_err(|_| Error::Numerical("the coarse kernel block is not positive definite".into()))?;
+            llt.inverse()
+        } else {
+            Mat::zeros(0, 0)
+        };
+        if s_inv.col_iter().any(|c| c.iter().any(|v| !v.is_finite())) {
             return Err(Error::Numerical("coarse problem could not be factored".into()));
         }
+        let n = nf + na;
         Ok(CoarseProblem {
             n_macro: nf,
             n_kernel: na,
-            matrix,
-            inverse,
+            l_lower,
+            g_ptr,
+            g_row,
+            g_val,
+            gamma,
+            factor,
+            s_inv,
             rhs: vec![0.0; n],
             solution: vec![0.0; n],
             residual: vec![0.0; n],
             correction: vec![0.0; n],
-            alpha_scale: gs,
+            work_f: vec![0.0; nf],
+            work_f2: vec![0.0; nf],
+            work_a: vec![0.0; na],
+            setup_s: t0.elapsed().as_secs_f64(),
         })
     }
 
-    /// Solves for `rhs = [Pᵀ J K⁺ r; Rᵀ r]` (unscaled, in the DESIGN.md sign
+    /// A coarse problem from dense `L` (`nf × nf`) and `G` (`nf × na`), for
+    /// tests and benchmarks.
+    pub fn from_dense(l: &Mat<f64>, g: &Mat<f64>, kernel_owner: &[usize]) -> Result<CoarseProblem> {
+        let part = CoarseContribution {
+            cols: (0..l.nrows()).collect(),
+            l: l.clone(),
+            g: g.clone(),
+            alpha_off: 0,
+        };
+        CoarseProblem::new(l.nrows(), g.ncols(), &[part], kernel_owner)
+    }
+
+    /// Solves for `rhs = [a; b] = [Pᵀ J K⁺ r; Rᵀ r]` (DESIGN.md sign
     /// convention); the solution is `[f; α]`. No allocation.
     pub fn solve(&mut self) {
         let nf = self.n_macro;
         let n = nf + self.n_kernel;
-        // Symmetric form: the second block row is negated and, like the
-        // α columns, scaled by gs (α = gs·α̃).
-        for i in nf..n {
-            self.rhs[i] = -self.rhs[i] * self.alpha_scale;
-        }
-        gemv(&self.inverse, &self.rhs, &mut self.solution);
+        let rhs = std::mem::take(&mut self.rhs);
+        let mut sol = std::mem::take(&mut self.solution);
+        let mut res = std::mem::take(&mut self.residual);
+        let mut cor = std::mem::take(&mut self.correction);
+        self.inner_solve(&rhs, &mut sol);
         for _ in 0..REFINEMENTS {
-            gemv(&self.matrix, &self.solution, &mut self.residual);
-            for i in 0..n {
-                self.residual[i] = self.rhs[i] - self.residual[i];
+            // res = rhs − [L f − G α; Gᵀ f]
+            sym_matvec(&self.l_lower, &sol[..nf], &mut res[..nf]);
+            g_mul_into(&self.g_ptr, &self.g_row, &self.g_val, &sol[nf..], &mut self.work_f);
+            for i in 0..nf {
+                res[i] = rhs[i] - (res[i] - self.work_f[i]);
             }
-            gemv(&self.inverse, &self.residual, &mut self.correction);
+            gt_mul_into(&self.g_ptr, &self.g_row, &self.g_val, &sol[..nf], &mut res[nf..]);
+            for i in nf..n {
+                res[i] = rhs[i] - res[i];
+            }
+            self.inner_solve(&res, &mut cor);
             for i in 0..n {
-                self.solution[i] += self.correction[i];
+                sol[i] += cor[i];
             }
         }
-        for i in nf..n {
-            self.solution[i] *= self.alpha_scale;
+        self.rhs = rhs;
+        self.solution = sol;
+        self.residual = res;
+        self.correction = cor;
+    }
+
+    /// One solve of the augmented, regularised system (see the type docs).
+    fn inner_solve(&mut self, rhs: &[f64], out: &mut [f64]) {
+        let nf = self.n_macro;
+        let (a, b) = rhs.split_at(nf);
+        let (f, alpha) = out.split_at_mut(nf);
+        // y = L_γ⁻¹ (a + γ G b)
+        g_mul_into(&self.g_ptr, &self.g_row, &self.g_val, b, &mut self.work_f);
+        for i in 0..nf {
+            f[i] = a[i] + self.gamma * self.work_f[i];
+        }
+        self.factor.solve_in_place(f);
+        // α = S⁻¹ (b − Gᵀ y)
+        gt_mul_into(&self.g_ptr, &self.g_row, &self.g_val, f, &mut self.work_a);
+        for (w, &bi) in self.work_a.iter_mut().zip(b) {
+            *w = bi - *w;
+        }
+        gemv(&self.s_inv, &self.work_a, alpha);
+        // f = y + L_γ⁻¹ G α
+        g_mul_into(&self.g_ptr, &self.g_row, &self.g_val, alpha, &mut self.work_f2);
+        self.factor.solve_in_place(&mut self.work_f2);
+        for (fi, &w) in f.iter_mut().zip(&self.work_f2) {
+            *fi += w;
         }
     }
 
-    /// The operator `L` (copy of the macro block).
+    /// The operator `L` as a dense matrix (for tests on small cases).
     pub fn operator(&self) -> Mat<f64> {
         let nf = self.n_macro;
-        Mat::from_fn(nf, nf, |i, j| self.matrix[(i, j)])
+        let mut m = Mat::<f64>::zeros(nf, nf);
+        let a = self.l_lower.as_ref();
+        for j in 0..nf {
+            for (i, &v) in a.row_idx_of_col(j).zip(a.val_of_col(j)) {
+                m[(i, j)] = v;
+                m[(j, i)] = v;
+            }
+        }
+        m
+    }
+
+    /// Stored entries of the coarse factor.
+    pub fn nnz_factor(&self) -> usize {
+        self.factor.nnz_l()
     }
 
     /// Macro forces `f` of the last solve.
@@ -234,6 +440,23 @@ impl CoarseProblem {
     /// Kernel amplitudes `α` of the last solve.
     pub fn kernel_amplitudes(&self) -> &[f64] {
         &self.solution[self.n_macro..]
+    }
+}
+
+/// `y = G x` for `G` stored by columns.
+fn g_mul_into(ptr: &[usize], row: &[usize], val: &[f64], x: &[f64], y: &mut [f64]) {
+    y.iter_mut().for_each(|v| *v = 0.0);
+    for (j, &xj) in x.iter().enumerate() {
+        for k in ptr[j]..ptr[j + 1] {
+            y[row[k]] += val[k] * xj;
+        }
+    }
+}
+
+/// `y = Gᵀ x` for `G` stored by columns.
+fn gt_mul_into(ptr: &[usize], row: &[usize], val: &[f64], x: &[f64], y: &mut [f64]) {
+    for (j, yj) in y.iter_mut().enumerate() {
+        *yj = (ptr[j]..ptr[j + 1]).map(|k| val[k] * x[row[k]]).sum();
     }
 }
 
@@ -252,16 +475,30 @@ fn gemv(a: &Mat<f64>, x: &[f64], y: &mut [f64]) {
     }
 }
 
-/// Fails with a named subdomain when `G` has a (numerically) dependent column.
-fn check_full_rank(g: &Mat<f64>, owner: &[usize]) -> Result<()> {
-    let gtg = g.transpose() * g;
+/// Fails with a named subdomain when `G` has a (numerically) dependent
+/// column. `GᵀG` is formed row by row of `G`: a row holds the kernel modes
+/// of the two subdomains of one interface only.
+fn check_full_rank(na: usize, ptr: &[usize], row: &[usize], val: &[f64], nf: usize, owner: &[usize]) -> Result<()> {
+    let mut rows: Vec<Vec<(usize, f64)>> = vec![Vec::new(); nf];
+    for j in 0..na {
+        for k in ptr[j]..ptr[j + 1] {
+            rows[row[k]].push((j, val[k]));
+        }
+    }
+    let mut gtg = Mat::<f64>::zeros(na, na);
+    for r in &rows {
+        for &(a, va) in r {
+            for &(b, vb) in r {
+                gtg[(a, b)] += va * vb;
+            }
+        }
+    }
     let eig = gtg
         .self_adjoint_eigen(faer::Side::Lower)
         .map_err(|_| Error::Numerical("coarse kernel check failed".into()))?;
     let s = eig.S();
-    let na = g.ncols();
     let smax = (0..na).map(|i| s[i]).fold(0.0f64, f64::max);
-    if na > 0 && s[0] <= 1e-12 * smax.max(f64::MIN_POSITIVE) || smax == 0.0 {
+    if s[0] <= 1e-12 * smax.max(f64::MIN_POSITIVE) || smax == 0.0 {
         let u = eig.U();
         let worst = (0..na).fold(0, |b, i| if u[(i, 0)].abs() > u[(b, 0)].abs() { i } else { b });
         return Err(Error::Mechanism(format!(

@@ -15,7 +15,7 @@
 //! number of threads. Scratch is allocated at set-up: the iteration loop
 //! does not allocate.
 
-use crate::coarse::{CoarseProblem, MacroBasis};
+use crate::coarse::{CoarseContribution, CoarseProblem, MacroBasis};
 use crate::decomposition::Decomposition;
 use crate::error::{Error, Result};
 use crate::kernels;
@@ -424,7 +424,7 @@ impl DdSolver {
         let mut n_macro = 0;
         if use_coarse {
             n_macro = ifaces.iter().map(|i| i.p.ncols()).sum();
-            let blocks: Vec<(Vec<usize>, Mat<f64>, Mat<f64>)> = subs
+            let parts: Vec<CoarseContribution> = subs
                 .par_iter_mut()
                 .map(|st| {
                     let n = st.op.n();
@@ -449,35 +449,33 @@ impl DdSolver {
                     }
                     let mut z = w.clone();
                     st.op.solve_columns(&mut z, m);
-                    let wm = Mat::from_fn(n, m, |i, j| w[j * n + i]);
-                    let zm = Mat::from_fn(n, m, |i, j| z[j * n + i]);
-                    let l_e = wm.transpose() * &zm;
-                    let g_e = wm.transpose() * st.op.kernel();
-                    st.z = zm;
+                    // W_E is zero off the interface dofs: L_E = W_Iᵀ Z_I and
+                    // G_E = W_Iᵀ R_I on those rows only.
+                    let rows = &st.iface_dofs;
+                    let wi = Mat::from_fn(rows.len(), m, |i, j| w[j * n + rows[i] as usize]);
+                    let zi = Mat::from_fn(rows.len(), m, |i, j| z[j * n + rows[i] as usize]);
+                    let kernel = st.op.kernel();
+                    let ri = Mat::from_fn(rows.len(), kernel.ncols(), |i, j| kernel[(rows[i] as usize, j)]);
+                    let l_e = wi.transpose() * &zi;
+                    let g_e = wi.transpose() * &ri;
+                    drop(w);
+                    st.z = Mat::from_fn(n, m, |i, j| z[j * n + i]);
                     st.fm = vec![0.0; m];
                     st.macro_cols = cols.clone();
-                    (cols, l_e, g_e)
+                    CoarseContribution {
+                        cols,
+                        l: l_e,
+                        g: g_e,
+                        alpha_off: st.alpha_off,
+                    }
                 })
                 .collect();
             let n_alpha = alpha_off;
-            let mut l = Mat::<f64>::zeros(n_macro, n_macro);
-            let mut g = Mat::<f64>::zeros(n_macro, n_alpha);
             let mut owner = vec![0usize; n_alpha];
-            for (s, (cols, l_e, g_e)) in blocks.iter().enumerate() {
-                for (b, &cb) in cols.iter().enumerate() {
-                    for (a, &ca) in cols.iter().enumerate() {
-                        l[(ca, cb)] += l_e[(a, b)];
-                    }
-                }
-                let off = subs[s].alpha_off;
-                for q in 0..g_e.ncols() {
-                    owner[off + q] = s;
-                    for (a, &ca) in cols.iter().enumerate() {
-                        g[(ca, off + q)] += g_e[(a, q)];
-                    }
-                }
+            for (s, p) in parts.iter().enumerate() {
+                owner[p.alpha_off..p.alpha_off + p.g.ncols()].fill(s);
             }
-            coarse = Some(CoarseProblem::new(l, g, &owner)?);
+            coarse = Some(CoarseProblem::new(n_macro, n_alpha, &parts, &owner)?);
         }
 
         let stats = DdStats {
@@ -547,9 +545,15 @@ impl DdSolver {
         self.ifaces.iter().map(|i| &i.p).collect()
     }
 
-    /// The assembled coarse operator `L` (macro block of the saddle system).
+    /// The assembled coarse operator `L` (macro block of the saddle system),
+    /// as a dense matrix: for tests on small cases.
     pub fn coarse_operator(&self) -> Option<Mat<f64>> {
         self.coarse.as_ref().map(|c| c.operator())
+    }
+
+    /// The factored coarse problem (multilevel only), e.g. to time its solve.
+    pub fn coarse_problem_mut(&mut self) -> Option<&mut CoarseProblem> {
+        self.coarse.as_mut()
     }
 
     /// The factored operator of subdomain `s`.

@@ -300,3 +300,97 @@ fn cross_point_of_four_subdomains_in_2d() {
     let scene = planar_grid(4, Some(&|i, j| (i / 2) * 2 + j / 2));
     assert_matches_direct(&scene, Method::Multilevel, 4, 1e-8);
 }
+
+/// Deterministic pseudo-random numbers in [-1, 1).
+fn lcg(seed: &mut u64) -> f64 {
+    *seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+    ((*seed >> 11) as f64 / (1u64 << 53) as f64) * 2.0 - 1.0
+}
+
+/// The sparse coarse solve against a dense solve of the same saddle system,
+/// with `L` singular on directions that only `G` restrains (`rank L + na =
+/// nf`: the augmentation case) and with extra null directions that act on
+/// nothing (`rank L + na < nf`: the redundant cross-point case).
+#[test]
+fn coarse_solve_matches_dense_saddle_with_singular_macro_block() {
+    use nsdd::coarse::CoarseProblem;
+    // With `scale` ≠ 1 the saddle system is badly balanced (condition ~1e10
+    // here), so only the residual is checked there.
+    for (nf, rank, na, scale) in [
+        (30, 24, 6, 1.0),
+        (30, 20, 6, 1.0),
+        (12, 12, 0, 1.0),
+        (30, 24, 6, 1e6),
+        (30, 20, 6, 1e-6),
+    ] {
+        let mut seed = 7 + rank as u64;
+        let b = Mat::<f64>::from_fn(nf, rank, |_, _| lcg(&mut seed));
+        let l = (&b * b.transpose()) * scale;
+        let g = Mat::<f64>::from_fn(nf, na, |_, _| lcg(&mut seed));
+        let owner = vec![0; na];
+        let mut cp = CoarseProblem::from_dense(&l, &g, &owner).unwrap();
+        // A consistent right-hand side from a known (f0, α0).
+        let f0: Vec<f64> = (0..nf).map(|_| lcg(&mut seed)).collect();
+        let a0: Vec<f64> = (0..na).map(|_| lcg(&mut seed)).collect();
+        for i in 0..nf {
+            cp.rhs[i] =
+                (0..nf).map(|j| l[(i, j)] * f0[j]).sum::<f64>() - (0..na).map(|q| g[(i, q)] * a0[q]).sum::<f64>();
+        }
+        for q in 0..na {
+            cp.rhs[nf + q] = (0..nf).map(|i| g[(i, q)] * f0[i]).sum();
+        }
+        cp.solve();
+        let f = cp.macro_forces().to_vec();
+        let alpha = cp.kernel_amplitudes().to_vec();
+        // α is unique whenever G has full column rank (forward errors are
+        // bounded by the conditioning: random G gives ~1e7 here).
+        for q in 0..na * (scale == 1.0) as usize {
+            assert!(
+                (alpha[q] - a0[q]).abs() < 1e-6,
+                "case {nf}/{rank}/{na}: α[{q}] {} vs {}",
+                alpha[q],
+                a0[q]
+            );
+        }
+        // f is unique up to the common null space: compare residuals.
+        let rhs_max = cp.rhs.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        for i in 0..nf {
+            let r = (0..nf).map(|j| l[(i, j)] * (f[j] - f0[j])).sum::<f64>()
+                - (0..na).map(|q| g[(i, q)] * (alpha[q] - a0[q])).sum::<f64>();
+            assert!(r.abs() < 1e-12 * rhs_max, "case {nf}/{rank}/{na}: residual {r:e}");
+        }
+        for q in 0..na {
+            let r: f64 = (0..nf).map(|i| g[(i, q)] * (f[i] - f0[i])).sum();
+            assert!(
+                r.abs() < 1e-12 * rhs_max.max(1.0),
+                "case {nf}/{rank}/{na}: constraint residual {r:e}"
+            );
+        }
+        if rank + na == nf && scale == 1.0 {
+            // Nonsingular saddle system: f itself is unique.
+            for i in 0..nf {
+                assert!(
+                    (f[i] - f0[i]).abs() < 1e-6,
+                    "case {nf}/{rank}/{na}: f[{i}] {} vs {}",
+                    f[i],
+                    f0[i]
+                );
+            }
+        }
+        assert!(f.iter().chain(&alpha).all(|v| v.is_finite()));
+    }
+}
+
+/// A kernel mode that no interface restrains is a mechanism, reported as such.
+#[test]
+fn coarse_problem_rejects_a_dependent_kernel_column() {
+    use nsdd::coarse::CoarseProblem;
+    let mut seed = 3;
+    let l = Mat::<f64>::identity(8, 8);
+    let mut g = Mat::<f64>::from_fn(8, 3, |_, _| lcg(&mut seed));
+    for i in 0..8 {
+        g[(i, 2)] = g[(i, 0)] - 2.0 * g[(i, 1)];
+    }
+    let err = CoarseProblem::from_dense(&l, &g, &[4, 4, 5]).unwrap_err();
+    assert!(matches!(err, nsdd::error::Error::Mechanism(_)), "{err}");
+}
