@@ -2,9 +2,18 @@
 //! subdomain (DESIGN.md §2). Recursive coordinate bisection on element
 //! midpoints: balanced element counts, compact parts (hence small
 //! interfaces), and deterministic (ties broken by element index).
+//!
+//! A geometric cut of a truss leaves *dangling* interface nodes: a node held
+//! in a subdomain by one or two bars (or by bars in one plane) can move
+//! freely there, so that subdomain's matrix gets a mechanism mode per such
+//! node. Every mode is a kernel column, a coarse unknown and a dense
+//! `n × 1` column in every iteration, and monolevel becomes impossible. The
+//! bisection therefore ends with a repair pass that hands the elements of
+//! such a weak node to the neighbouring subdomain that holds the node most
+//! strongly (see [`Partition::repair_weak_nodes`]).
 
 use crate::error::{Error, Result};
-use crate::model::Model;
+use crate::model::{Model, FIXED};
 
 /// Which subdomain each element belongs to.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -34,8 +43,17 @@ impl Partition {
         Partition { part_of, elements_of }
     }
 
-    /// Recursive coordinate bisection into `n_parts` subdomains.
+    /// Recursive coordinate bisection into `n_parts` subdomains, followed by
+    /// [`Partition::repair_weak_nodes`].
     pub fn bisection(model: &Model, n_parts: usize) -> Result<Partition> {
+        let mut partition = Partition::coordinate_bisection(model, n_parts)?;
+        partition.repair_weak_nodes(model);
+        Ok(partition)
+    }
+
+    /// Plain recursive coordinate bisection: element counts balanced to
+    /// one, without the weak-node repair.
+    pub fn coordinate_bisection(model: &Model, n_parts: usize) -> Result<Partition> {
         let ne = model.elements.len();
         if n_parts == 0 {
             return Err(Error::input("solver.subdomains", None, "must be at least 1"));
@@ -56,6 +74,25 @@ impl Partition {
         let mut ids: Vec<usize> = (0..ne).collect();
         bisect(&mid, &mut ids, 0, n_parts, &mut part_of);
         Ok(Partition::from_part_of(part_of, n_parts))
+    }
+
+    /// Removes local mechanisms at the cut. A subdomain holds a node
+    /// *weakly* when its elements there do not span the node's free dofs
+    /// (the node can move freely in that subdomain). For each weak holder,
+    /// first try to *pull* elements at the node from other holders that stay
+    /// strong without them (and that do not leave a weak node at the
+    /// element's other end); if that cannot make it strong, *give* its
+    /// elements at the node to the strongest holder. Repeats until nothing
+    /// moves (at most [`REPAIR_PASSES`] passes; an element moves at most
+    /// twice, so trading cannot cycle). Element counts stay within 1/2 and
+    /// 3/2 of the average.
+    /// Deterministic. Returns the number of element moves.
+    pub fn repair_weak_nodes(&mut self, model: &Model) -> usize {
+        let moved = repair(model, &mut self.part_of, self.elements_of.len());
+        if moved > 0 {
+            *self = Partition::from_part_of(std::mem::take(&mut self.part_of), self.elements_of.len());
+        }
+        moved
     }
 
     /// The user's partition from `elements.subdomain`. Ids must cover
@@ -96,6 +133,170 @@ impl Partition {
         Ok(Partition::from_part_of(subdomain.to_vec(), n_parts))
     }
 }
+
+fn repair(model: &Model, part_of: &mut [usize], n_parts: usize) -> usize {
+    let nn = model.coords.len();
+    let mut incident: Vec<Vec<usize>> = vec![Vec::new(); nn];
+    for (e, el) in model.elements.iter().enumerate() {
+        incident[el.a].push(e);
+        incident[el.b].push(e);
+    }
+    let free: Vec<Vec<usize>> = (0..nn)
+        .map(|n| (0..3).filter(|&d| model.node_dofs[n][d] != FIXED).collect())
+        .collect();
+    let star = |n: usize, q: usize, part_of: &[usize]| -> Vec<usize> {
+        incident[n].iter().copied().filter(|&e| part_of[e] == q).collect()
+    };
+    // Strong (or absent) holder `q` at `n`, after `add`/`remove` of one element.
+    let ok_after = |n: usize, q: usize, part_of: &[usize], add: Option<usize>, remove: Option<usize>| -> bool {
+        let mut st = star(n, q, part_of);
+        if let Some(r) = remove {
+            st.retain(|&e| e != r);
+        }
+        if let Some(a) = add {
+            st.push(a);
+        }
+        st.is_empty() || free[n].is_empty() || spans(model, &st, &free[n])
+    };
+    let mut count = vec![0usize; n_parts];
+    for &p in part_of.iter() {
+        count[p] += 1;
+    }
+    // Balance bounds: a repair never takes a subdomain outside
+    // [1/2, 3/2] of the average element count (nor empties it).
+    let avg = part_of.len() as f64 / n_parts as f64;
+    let (lo, hi) = (((0.5 * avg).floor() as usize).max(1), (1.5 * avg).ceil() as usize);
+    let mut moves = vec![0u8; model.elements.len()];
+    let mut moved = 0;
+    for _ in 0..REPAIR_PASSES {
+        let mut changed = false;
+        for n in 0..nn {
+            if free[n].is_empty() {
+                continue;
+            }
+            let mut parts: Vec<usize> = incident[n].iter().map(|&e| part_of[e]).collect();
+            parts.sort_unstable();
+            parts.dedup();
+            if parts.len() < 2 {
+                continue;
+            }
+            for &p in &parts {
+                if spans(model, &star(n, p, part_of), &free[n]) {
+                    continue;
+                }
+                // Pull: elements of other holders at n whose removal keeps
+                // them strong at both ends and that p holds strongly at
+                // their other end.
+                let mut pulled = Vec::new();
+                for &e in &incident[n] {
+                    let q = part_of[e];
+                    if q == p || moves[e] >= MAX_MOVES_PER_ELEMENT || count[q] <= lo || count[p] + pulled.len() >= hi {
+                        continue;
+                    }
+                    let el = &model.elements[e];
+                    let m = if el.a == n { el.b } else { el.a };
+                    if ok_after(n, q, part_of, None, Some(e))
+                        && ok_after(m, q, part_of, None, Some(e))
+                        && ok_after(m, p, part_of, Some(e), None)
+                    {
+                        part_of[e] = p;
+                        pulled.push((e, q));
+                        if spans(model, &star(n, p, part_of), &free[n]) {
+                            break;
+                        }
+                    }
+                }
+                if spans(model, &star(n, p, part_of), &free[n]) {
+                    for &(e, q) in &pulled {
+                        moves[e] += 1;
+                        count[q] -= 1;
+                        count[p] += 1;
+                    }
+                    moved += pulled.len();
+                    changed |= !pulled.is_empty();
+                    continue;
+                }
+                for &(e, q) in &pulled {
+                    part_of[e] = q;
+                }
+                // Give: to the strong holder with most elements at n, or,
+                // when none is strong, to the largest holder. Ties: lowest id.
+                let strong: Vec<usize> = parts
+                    .iter()
+                    .copied()
+                    .filter(|&q| q != p && spans(model, &star(n, q, part_of), &free[n]))
+                    .collect();
+                let pool = if strong.is_empty() {
+                    parts.iter().copied().filter(|&q| q != p).collect()
+                } else {
+                    strong
+                };
+                let Some(target) = pool
+                    .iter()
+                    .copied()
+                    .max_by_key(|&q| (star(n, q, part_of).len(), std::cmp::Reverse(q)))
+                else {
+                    continue;
+                };
+                let mine: Vec<usize> = star(n, p, part_of)
+                    .into_iter()
+                    .filter(|&e| moves[e] < MAX_MOVES_PER_ELEMENT)
+                    .collect();
+                if mine.is_empty() || count[p] < lo + mine.len() || count[target] + mine.len() > hi {
+                    continue;
+                }
+                for &e in &mine {
+                    part_of[e] = target;
+                    moves[e] += 1;
+                }
+                count[p] -= mine.len();
+                count[target] += mine.len();
+                moved += mine.len();
+                changed = true;
+            }
+        }
+        if !changed {
+            break;
+        }
+    }
+    moved
+}
+
+/// Passes of [`Partition::repair_weak_nodes`].
+pub const REPAIR_PASSES: usize = 8;
+
+/// Whether the directions of `elements` (all at one node) span the node's
+/// `free` components: `Σ dir dirᵀ` restricted to them is regular.
+fn spans(model: &Model, elements: &[usize], free: &[usize]) -> bool {
+    let mut m = [[0.0f64; 3]; 3];
+    for &e in elements {
+        let d = model.elements[e].dir;
+        for (i, &a) in free.iter().enumerate() {
+            for (j, &b) in free.iter().enumerate() {
+                m[i][j] += d[a] * d[b];
+            }
+        }
+    }
+    // Each dir is a unit vector, so the trace is at most the element count;
+    // a determinant this small relative to it means a (near) zero eigenvalue.
+    let tr: f64 = (0..free.len()).map(|i| m[i][i]).sum();
+    let det = match free.len() {
+        1 => m[0][0],
+        2 => m[0][0] * m[1][1] - m[0][1] * m[1][0],
+        _ => {
+            m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1]) - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
+                + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0])
+        }
+    };
+    det > WEAK_NODE_RATIO * tr.powi(free.len() as i32)
+}
+
+/// An element changes subdomain at most this often (guarantees the repair
+/// terminates even where two weak holders would trade elements).
+const MAX_MOVES_PER_ELEMENT: u8 = 2;
+
+/// Relative determinant below which a node counts as weakly held.
+const WEAK_NODE_RATIO: f64 = 1e-8;
 
 /// Splits `ids` into `parts` parts numbered from `first`, along the axis of
 /// largest extent, at the element count proportional to the part counts.

@@ -444,8 +444,30 @@ fn accuracy_study_writes_csv_and_svgs() {
     assert!(sampled.len() >= 3 && sampled.len() <= 8, "{} samples", sampled.len());
     assert!(sampled.last().unwrap() < sampled.first().unwrap());
     assert_svg(&out_dir.join("history-multilevel.svg"));
-    // Monolevel refuses these floating subdomains: a note, no rows.
-    assert!(text(&out.stdout).contains("monolevel skipped"));
+    // The repaired bisection leaves both halves regular here, so monolevel
+    // runs too, with its own rows and history.
+    let mono: Vec<&Vec<String>> = rows.iter().filter(|r| r[0] == "monolevel").collect();
+    assert_eq!(mono.len(), 9, "{}", text(&out.stdout));
+    assert_svg(&out_dir.join("history-monolevel.svg"));
+    // On a floating split it is skipped with a note instead.
+    let out = nsdd(&[
+        "accuracy",
+        s(&toml),
+        "--out",
+        s(&d.join("acc8")),
+        "--subdomains",
+        "8",
+        "--samples",
+        "4",
+    ]);
+    ok(&out);
+    let (_, rows8) = csv_rows(&d.join("acc8").join("accuracy.csv"));
+    let mono8 = rows8.iter().filter(|r| r[0] == "monolevel").count();
+    assert!(
+        mono8 == 9 || text(&out.stdout).contains("monolevel skipped"),
+        "{}",
+        text(&out.stdout)
+    );
 }
 
 #[test]

@@ -61,13 +61,24 @@ fn dense_k(op: &nsdd::subdomain::SubdomainOperator) -> Mat<f64> {
 fn partition_is_balanced_deterministic_and_complete() {
     let model = grid_model(8);
     for n in [1, 2, 3, 4, 7, 16, 64] {
+        let raw = Partition::coordinate_bisection(&model, n).unwrap();
         let p = Partition::bisection(&model, n).unwrap();
-        assert_eq!(p.len(), n);
+        let avg = model.elements.len() as f64 / n as f64;
+        // Plain bisection balances to one element; the weak-node repair
+        // keeps every count within [1/2, 3/2] of the average.
+        for (p, lo, hi) in [
+            (&raw, avg.floor() as usize, avg.ceil() as usize),
+            (&p, (0.5 * avg).floor().max(1.0) as usize, (1.5 * avg).ceil() as usize),
+        ] {
+            assert_eq!(p.len(), n);
+            let counts: Vec<usize> = p.elements_of.iter().map(|e| e.len()).collect();
+            assert_eq!(counts.iter().sum::<usize>(), model.elements.len());
+            assert!(
+                counts.iter().all(|&c| c >= lo && c <= hi),
+                "unbalanced: {counts:?} (bounds {lo}..={hi})"
+            );
+        }
         assert_eq!(p, Partition::bisection(&model, n).unwrap(), "not deterministic");
-        let counts: Vec<usize> = p.elements_of.iter().map(|e| e.len()).collect();
-        assert_eq!(counts.iter().sum::<usize>(), model.elements.len());
-        let (min, max) = (*counts.iter().min().unwrap(), *counts.iter().max().unwrap());
-        assert!(max - min <= 1, "unbalanced: {counts:?}");
     }
     assert!(Partition::bisection(&model, 0).is_err());
     assert!(Partition::bisection(&model, model.elements.len() + 1).is_err());
@@ -393,4 +404,21 @@ fn coarse_problem_rejects_a_dependent_kernel_column() {
     }
     let err = CoarseProblem::from_dense(&l, &g, &[4, 4, 5]).unwrap_err();
     assert!(matches!(err, nsdd::error::Error::Mechanism(_)), "{err}");
+}
+
+/// The weak-node repair removes most local mechanisms at the cut (each one
+/// a kernel column, a coarse unknown and a dense column per iteration), and
+/// the solution does not change.
+#[test]
+fn weak_node_repair_shrinks_subdomain_kernels() {
+    let model = grid_model(12);
+    for parts in [4, 16] {
+        let kernel_total = |p: Partition| -> usize {
+            let dec = Decomposition::new(&model, p);
+            multilevel(&model, &dec).stats().kernel_dims.iter().sum()
+        };
+        let raw = kernel_total(Partition::coordinate_bisection(&model, parts).unwrap());
+        let repaired = kernel_total(Partition::bisection(&model, parts).unwrap());
+        assert!(2 * repaired <= raw, "{parts} parts: kernel {raw} -> {repaired}");
+    }
 }

@@ -1007,7 +1007,7 @@ fn globally_indefinite_geometric_stiffness_is_reported() {
 
 #[test]
 fn divergence_is_reported_not_looped() {
-    for scene in [grid_scene(8, true, 0.1), cube_lattice(3, true, None)] {
+    for scene in [grid_scene(8, true, 0.1), cube_lattice(4, true, None)] {
         let mut o = opts(Method::Multilevel, 8, 1e-10);
         o.search_direction = SearchDirection::Value(1e6);
         match solve(&scene, &o) {
