@@ -72,6 +72,15 @@ pub struct DdProfile {
     pub threads: usize,
     pub macro_unknowns: usize,
     pub kernel_unknowns: usize,
+    /// Partition and decomposition.
+    pub partition_s: f64,
+    /// Subdomain assembly and factorizations.
+    pub factor_s: f64,
+    /// Macro space and coarse problem.
+    pub coarse_s: f64,
+    /// Automatic `d` (30 power-iteration steps).
+    pub search_direction_s: f64,
+    /// Whole set-up: partition + factorizations + coarse problem + `d`.
     pub setup_s: f64,
     /// Time of one iteration (difference of two runs, divided).
     pub iteration_s: f64,
@@ -85,8 +94,9 @@ pub struct DdProfile {
 /// Measures per-iteration time against the triangular-solve bound.
 pub fn dd_profile(scene: &Scene, subdomains: usize, iterations: usize) -> Result<DdProfile> {
     let model = Model::from_scene(scene)?;
-    let dec = decompose(&model, scene, subdomains)?;
     let t = Instant::now();
+    let dec = decompose(&model, scene, subdomains)?;
+    let partition_s = t.elapsed().as_secs_f64();
     let mut dd = DdSolver::new(
         &model,
         &dec,
@@ -119,6 +129,10 @@ pub fn dd_profile(scene: &Scene, subdomains: usize, iterations: usize) -> Result
         threads: rayon::current_num_threads(),
         macro_unknowns: stats.macro_unknowns,
         kernel_unknowns: stats.kernel_unknowns,
+        partition_s,
+        factor_s: stats.factor_s,
+        coarse_s: stats.coarse_s,
+        search_direction_s: stats.search_direction_s,
         setup_s,
         iteration_s,
         substitution_s,

@@ -46,6 +46,43 @@ const POWER_ITERATIONS: usize = 30;
 /// Indicator growth over the best value seen that counts as divergence.
 const DIVERGENCE_GROWTH: f64 = 1e6;
 
+/// Restarts with a halved automatic `d` before divergence is reported.
+const MAX_D_RESTARTS: usize = 3;
+
+/// Iterations over which the contraction factor `ρ` of the indicator is
+/// measured for the stopping test.
+pub const CONTRACTION_WINDOW: usize = 10;
+
+/// Largest `ρ` used in the stopping test (caps the safety factor
+/// `1 / (1 − ρ)` at 100).
+pub const CONTRACTION_CAP: f64 = 0.99;
+
+/// Safety factor `1 / (1 − ρ)` of the stopping test. The indicator of a
+/// stationary iteration measures the last step (an interface residual, a
+/// change of `λ`), not the distance to the solution; for a linear
+/// contraction with factor `ρ` that distance is up to `1 / (1 − ρ)` times
+/// larger. Stopping on `indicator` alone left slowly converging runs 10-35×
+/// the tolerance away from the direct solution (docs/robustness.md).
+/// `history` holds the indicators so far, the current one last; `ρ` is the
+/// geometric mean ratio over the last [`CONTRACTION_WINDOW`] iterations
+/// (fewer at the start; 0.5 with a single value), clamped to
+/// `[0, CONTRACTION_CAP]`.
+pub fn stopping_factor(history: &[HistoryEntry]) -> f64 {
+    let n = history.len();
+    let rho = if n < 2 {
+        0.5
+    } else {
+        let w = (n - 1).min(CONTRACTION_WINDOW);
+        let (now, then) = (history[n - 1].indicator, history[n - 1 - w].indicator);
+        if then > 0.0 && now >= 0.0 {
+            (now / then).powf(1.0 / w as f64)
+        } else {
+            CONTRACTION_CAP
+        }
+    };
+    1.0 / (1.0 - rho.clamp(0.0, CONTRACTION_CAP))
+}
+
 /// A unilateral cable seen from its subdomain: the column `h_c` of `H`
 /// (at most 6 entries, local dofs; unused slots hold [`NO_DOF`]), its
 /// stiffness `k_c` and prestrain `e0_c`.
@@ -247,7 +284,14 @@ pub struct DdStats {
     pub interface_entries: usize,
     pub nnz_l: usize,
     pub search_direction: f64,
+    /// Whole set-up (operators, macro space, coarse problem, `d`).
     pub setup_s: f64,
+    /// Subdomain assembly and factorizations (with kernels).
+    pub factor_s: f64,
+    /// Macro basis, batched solves for `L` and `G`, coarse factorization.
+    pub coarse_s: f64,
+    /// Choice of `d` (power iteration on the interface operator).
+    pub search_direction_s: f64,
 }
 
 /// The set-up DD solver: factorizations, macro space and coarse problem,
@@ -270,8 +314,10 @@ impl DdSolver {
     pub fn new(model: &Model, dec: &Decomposition, opts: DdOptions) -> Result<DdSolver> {
         let t0 = Instant::now();
         let problem = DdProblem::from_model(model, dec)?;
+        let factor_s = t0.elapsed().as_secs_f64();
         let mut solver = DdSolver::from_problem(problem, opts)?;
         solver.stats.setup_s = t0.elapsed().as_secs_f64();
+        solver.stats.factor_s = factor_s;
         Ok(solver)
     }
 
@@ -307,6 +353,7 @@ impl DdSolver {
         }
 
         let use_coarse = opts.coarse && !dec.interfaces.is_empty();
+        let t_coarse = Instant::now();
         // Interfaces and their macro bases.
         let mut ifaces: Vec<IfaceState> = dec
             .interfaces
@@ -487,6 +534,13 @@ impl DdSolver {
             nnz_l: subs.iter().map(|s| s.op.nnz_l()).sum(),
             search_direction: 0.0,
             setup_s: 0.0,
+            factor_s: 0.0,
+            coarse_s: if use_coarse {
+                t_coarse.elapsed().as_secs_f64()
+            } else {
+                0.0
+            },
+            search_direction_s: 0.0,
         };
         let mut solver = DdSolver {
             subs,
@@ -499,10 +553,12 @@ impl DdSolver {
             dof_maps: dec.subdomains.iter().map(|s| s.dofs.clone()).collect(),
             stats,
         };
+        let t_d = Instant::now();
         solver.d = match solver.opts.search_direction {
             SearchDirection::Value(d) => d,
             SearchDirection::Auto => solver.auto_search_direction()?,
         };
+        solver.stats.search_direction_s = t_d.elapsed().as_secs_f64();
         solver.stats.search_direction = solver.d;
         solver.stats.setup_s = t0.elapsed().as_secs_f64();
         Ok(solver)
@@ -735,6 +791,10 @@ impl DdSolver {
         let mut best = f64::INFINITY;
         let mut converged = false;
         let mut iterations = 0;
+        let auto_d = matches!(self.opts.search_direction, SearchDirection::Auto);
+        let mut restarts = 0;
+        // Iteration count at the last restart (history entries after it count).
+        let mut restart_at = 0;
         // One subdomain without cables: the first global step is exact.
         if self.ifaces.is_empty() && !has_cables {
             converged = true;
@@ -782,13 +842,34 @@ impl DdSolver {
             if let Some(p) = progress.as_mut() {
                 p(iterations, indicator);
             }
+            let blew_up = !indicator.is_finite()
+                || !v2.is_finite()
+                || (indicator > DIVERGENCE_GROWTH * best && iterations > restart_at + 10);
+            if blew_up && auto_d && restarts < MAX_D_RESTARTS {
+                // The automatic d rests on an estimate of λ_max from below;
+                // when it proves too large, halve it and start again.
+                restarts += 1;
+                self.d *= 0.5;
+                self.stats.search_direction = self.d;
+                for s in self.subs.iter_mut() {
+                    s.lambda.iter_mut().for_each(|v| *v = 0.0);
+                }
+                for it in self.ifaces.iter_mut() {
+                    it.force.iter_mut().for_each(|f| *f = 0.0);
+                }
+                self.global_step(has_cables);
+                self.compute_jumps();
+                best = f64::INFINITY;
+                restart_at = iterations;
+                continue;
+            }
             if !indicator.is_finite() || !v2.is_finite() {
                 return Err(Error::Diverged {
                     iteration: iterations,
                     message: "the iterate is no longer finite (NaN or Inf); lower the search direction d".into(),
                 });
             }
-            if indicator > DIVERGENCE_GROWTH * best && iterations > 10 {
+            if indicator > DIVERGENCE_GROWTH * best && iterations > restart_at + 10 {
                 return Err(Error::Diverged {
                     iteration: iterations,
                     message: format!(
@@ -798,7 +879,9 @@ impl DdSolver {
                 });
             }
             best = best.min(indicator);
-            converged = indicator <= self.opts.tolerance;
+            converged = indicator <= self.opts.tolerance
+                && indicator * stopping_factor(&history[history.len() - (iterations - restart_at)..])
+                    <= self.opts.tolerance;
         }
         let (u, lambda) = self.assemble();
         Ok(DdOutcome {

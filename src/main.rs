@@ -651,27 +651,54 @@ fn cmd_bench(a: BenchArgs) -> Result<i32> {
         }
     } else {
         println!(
-            "{:>6} {:>9} {:>5} {:>7} {:>7} {:>7} {:>9} {:>11} {:>13} {:>7}",
-            "size", "dofs", "subs", "threads", "macro", "kernel", "setup s", "iter ms", "substit. ms", "ratio"
+            "{:>6} {:>9} {:>5} {:>7} {:>7} {:>7} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>7} {:>10} {:>11} {:>6}",
+            "size",
+            "dofs",
+            "subs",
+            "threads",
+            "macro",
+            "kernel",
+            "part. s",
+            "factor s",
+            "coarse s",
+            "d s",
+            "setup s",
+            "direct s",
+            "setup/d",
+            "iter ms",
+            "substit. ms",
+            "ratio"
         );
         for &n in &a.sizes {
             let scene = scene_of(n);
+            // The direct solver's set-up on the same structure (assembly,
+            // ordering, factorization), for the set-up ratio.
+            let direct = nsdd::bench::direct_profile(&scene)?;
+            let direct_s = direct.assembly_s + direct.ordering_s + direct.factor_s;
             for &s in &a.subdomains {
                 let p = nsdd::bench::dd_profile(&scene, s, a.iterations)?;
                 println!(
-                    "{:>6} {:>9} {:>5} {:>7} {:>7} {:>7} {:>9.3} {:>11.3} {:>13.3} {:>7.2}",
+                    "{:>6} {:>9} {:>5} {:>7} {:>7} {:>7} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>7.2} {:>10.3} {:>11.3} {:>6.2}",
                     n,
                     p.dofs,
                     p.subdomains,
                     p.threads,
                     p.macro_unknowns,
                     p.kernel_unknowns,
+                    p.partition_s,
+                    p.factor_s,
+                    p.coarse_s,
+                    p.search_direction_s,
                     p.setup_s,
+                    direct_s,
+                    p.setup_s / direct_s.max(1e-12),
                     1e3 * p.iteration_s,
                     1e3 * p.substitution_s,
                     p.ratio
                 );
-                rows.push(serde_json::to_string(&p).expect("serializable"));
+                let mut row = serde_json::to_value(&p).expect("serializable");
+                row["direct_setup_s"] = serde_json::json!(direct_s);
+                rows.push(row.to_string());
             }
         }
     }

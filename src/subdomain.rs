@@ -8,8 +8,9 @@
 //! `diag(K_rr, δI)`. With `r_F` zeroed, its solve is the generalised inverse
 //! `K⁺ r = [K_rr⁻¹ r_r; 0]`, exact for `r ⊥ R_E`, and the kernel is
 //! `R = [−K_rr⁻¹ K_rf; I]`, orthonormalised. Both are checked a posteriori
-//! (`‖K R‖`), and a negative pivot is an indefinite subdomain: it is
-//! reported, never regularised away.
+//! (`‖K R‖`), and a clearly negative pivot is an indefinite subdomain: it
+//! is reported, never regularised away (a barely negative one is treated as
+//! a candidate mechanism and must pass the same kernel check).
 
 use crate::decomposition::SubdomainDofs;
 use crate::error::{Error, Result};
@@ -31,6 +32,10 @@ pub const SUBDOMAIN_PIVOT_RATIO: f64 = 1e-10;
 /// Relative size of `‖K r‖ / (‖K‖ ‖r‖)` above which a computed kernel
 /// vector is rejected (indefinite or badly conditioned subdomain).
 pub const KERNEL_TOL: f64 = 1e-8;
+
+/// A negative pivot smaller than this (relative to its diagonal entry) may
+/// be round-off on a mechanism; larger ones mean an indefinite matrix.
+pub const ROUNDOFF_NEGATIVE_PIVOT: f64 = 1e-6;
 
 /// The factored stiffness of one subdomain.
 pub struct SubdomainOperator {
@@ -162,10 +167,16 @@ impl SubdomainOperator {
         };
         let scan = scan_pivots(&stiffness, SUBDOMAIN_PIVOT_RATIO)
             .map_err(|e| Error::Numerical(format!("subdomain {id}: {e:?}")))?;
-        if let Some(&(dof, ratio)) = scan.negative.iter().find(|(_, r)| *r < -1e-10) {
+        if let Some(&(dof, ratio)) = scan.negative.iter().find(|(_, r)| *r < -ROUNDOFF_NEGATIVE_PIVOT) {
             return Err(indefinite(dof, format!("indefinite (pivot ratio {ratio:.2e})")));
         }
+        // Barely negative pivots are round-off on a mechanism in a large
+        // subdomain (seen at -3e-9 on a 60k-dof grid part): fix them like
+        // negligible ones; the kernel check below rejects any that is not.
         let mut fixing = scan.negligible;
+        fixing.extend(scan.negative.iter().map(|&(dof, _)| dof));
+        fixing.sort_unstable();
+        fixing.dedup();
         if fixing.len() > MAX_KERNEL_DIM {
             return Err(Error::IndefiniteSubdomain {
                 subdomain: id,

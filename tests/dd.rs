@@ -205,3 +205,39 @@ fn history_records_indicator_and_time() {
     assert!(r.history.iter().all(|h| h.indicator.is_finite()));
     assert_eq!(r.stages, vec!["interface", "cables", "coarse", "kernel"]);
 }
+
+/// The stopping test's safety factor is `1 / (1 − ρ)` for the measured
+/// contraction `ρ`, capped at 100, and 2 with a single indicator.
+#[test]
+fn stopping_factor_follows_the_contraction_rate() {
+    use nsdd::dd::stopping_factor;
+    use nsdd::result::HistoryEntry;
+    let hist = |rho: f64, n: usize| -> Vec<HistoryEntry> {
+        (0..n)
+            .map(|k| HistoryEntry {
+                iteration: k + 1,
+                time_s: 0.0,
+                indicator: rho.powi(k as i32),
+                jump: None,
+                cable_change: None,
+            })
+            .collect()
+    };
+    assert!((stopping_factor(&hist(0.9, 30)) - 10.0).abs() < 1e-9);
+    assert!((stopping_factor(&hist(0.5, 3)) - 2.0).abs() < 1e-9);
+    assert!((stopping_factor(&hist(0.5, 1)) - 2.0).abs() < 1e-9);
+    // Stagnation or growth: capped.
+    assert!((stopping_factor(&hist(1.0, 30)) - 100.0).abs() < 1e-9);
+    assert!((stopping_factor(&hist(1.5, 30)) - 100.0).abs() < 1e-9);
+    // Only the last window counts: fast then slow.
+    let mut h = hist(0.1, 5);
+    let last = h.last().unwrap().indicator;
+    h.extend((1..=20).map(|k| HistoryEntry {
+        iteration: 5 + k,
+        time_s: 0.0,
+        indicator: last * 0.8f64.powi(k as i32),
+        jump: None,
+        cable_change: None,
+    }));
+    assert!((stopping_factor(&h) - 5.0).abs() < 1e-9);
+}

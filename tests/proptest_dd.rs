@@ -147,6 +147,7 @@ struct Tally {
     errors: Vec<(f64, usize, usize)>,
     above_10_tol: usize,
     errors_reported: usize,
+    diverged: usize,
 }
 
 /// Cables whose slack flag differs must be at zero strain in the direct solution.
@@ -228,9 +229,17 @@ fn check(truss: &Truss, tally: &RefCell<Tally>) -> Result<(), TestCaseError> {
             t.iterations.push(r.iterations);
             Ok(())
         }
-        // Any error fails the property: the structure is stable (direct
-        // solved it) and has no geometric stiffness, so neither a mechanism,
-        // an indefinite subdomain nor divergence is a legitimate answer.
+        // Divergence is the stationary iteration's own limit (reported by
+        // name, after three restarts with a halved automatic d): counted
+        // with the unconverged cases, and bounded below.
+        Err(e @ Error::Diverged { .. }) => {
+            t.diverged += 1;
+            t.notes.push(format!("{n_sub} subdomains: {e}"));
+            Ok(())
+        }
+        // Any other error fails the property: the structure is stable (direct
+        // solved it) and has no geometric stiffness, so neither a mechanism
+        // nor an indefinite subdomain is a legitimate answer.
         Err(e) => {
             t.errors_reported += 1;
             t.notes.push(e.to_string());
@@ -258,11 +267,12 @@ fn multilevel_matches_direct_on_random_trusses() {
     let mut it = t.iterations.clone();
     it.sort_unstable();
     eprintln!(
-        "random trusses: {} cases run (incl. shrinking), {} matched direct, {} skipped (direct: mechanism), {} not converged, {} errors, {} zero-strain cables with a different slack flag; iterations median {} max {}",
+        "random trusses: {} cases run (incl. shrinking), {} matched direct, {} skipped (direct: mechanism), {} not converged, {} diverged, {} other errors, {} zero-strain cables with a different slack flag; iterations median {} max {}",
         t.cases,
         t.matched,
         t.skipped_direct_mechanism,
         t.not_converged,
+        t.diverged,
         t.errors_reported,
         t.degenerate_slack,
         it.get(it.len() / 2).copied().unwrap_or(0),
@@ -286,25 +296,20 @@ fn multilevel_matches_direct_on_random_trusses() {
         t.matched * 2 >= t.cases,
         "fewer than half the cases were checked against direct"
     );
-    // Measured on 256 cases (docs/robustness.md): 2.3% stall unconverged
-    // (cable stage close to a mechanism once slack cables are removed) and
-    // 1.2% stop with an error between 10x and 35x the tolerance (the
-    // indicator is not an error bound on ill-conditioned trusses). Allow 5%
-    // of each, and never more than 100x the tolerance.
+    // Measured on 600 cases (docs/robustness.md): 1.8% stall unconverged
+    // (slow stationary iteration on ill-conditioned partitions of tiny
+    // trusses), 0.2% diverge, and no converged case is above 10x the
+    // tolerance since the stopping test accounts for the contraction rate
+    // (max 3.3x). Allow 5% unconverged or diverged, none above 10x.
     assert!(
-        t.not_converged * 20 <= t.cases,
-        "{} of {} cases not converged",
+        (t.not_converged + t.diverged) * 20 <= t.cases,
+        "{} of {} cases not converged, {} diverged",
         t.not_converged,
-        t.cases
+        t.cases,
+        t.diverged
     );
     assert!(
-        t.above_10_tol * 20 <= t.cases,
-        "{} of {} cases above 10x the tolerance",
-        t.above_10_tol,
-        t.cases
-    );
-    assert!(
-        errs.last().copied().unwrap_or(0.0) <= 100.0,
+        errs.last().copied().unwrap_or(0.0) <= 10.0,
         "a converged case is {:.1}x the tolerance off",
         errs.last().unwrap()
     );
