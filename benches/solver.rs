@@ -75,6 +75,7 @@ fn multilevel(max_iterations: usize) -> DdOptions {
         tolerance: 0.0,
         max_iterations,
         search_direction: SearchDirection::Auto,
+        krylov: false,
     }
 }
 

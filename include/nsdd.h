@@ -96,6 +96,11 @@ typedef enum NsddMethod {
      * Domain decomposition with the kernel-enriched macro space.
      */
     NSDD_METHOD_MULTILEVEL = 2,
+    /**
+     * Conjugate gradient on the interface problem with the same coarse
+     * step (linear case only).
+     */
+    NSDD_METHOD_CG = 3,
 } NsddMethod;
 
 /**
@@ -396,7 +401,7 @@ void nsdd_options_destroy(struct NsddOptions *options);
 
 /**
  * Sets the method: one of `NsddMethod` (0 direct, 1 monolevel, 2
- * multilevel); any other value is INVALID_ARGUMENT.
+ * multilevel, 3 cg); any other value is INVALID_ARGUMENT.
  *
  * # Safety
  * `options` must be a live options handle.

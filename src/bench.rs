@@ -105,6 +105,7 @@ pub fn dd_profile(scene: &Scene, subdomains: usize, iterations: usize) -> Result
             tolerance: 0.0,
             max_iterations: 1,
             search_direction: SearchDirection::Auto,
+            krylov: false,
         },
     )?;
     let setup_s = t.elapsed().as_secs_f64();

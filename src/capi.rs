@@ -76,6 +76,9 @@ pub enum NsddMethod {
     Monolevel = 1,
     /// Domain decomposition with the kernel-enriched macro space.
     Multilevel = 2,
+    /// Conjugate gradient on the interface problem with the same coarse
+    /// step (linear case only).
+    Cg = 3,
 }
 
 /// Element kind (values of the `kind` array of `nsdd_scene_set_elements`).
@@ -785,7 +788,7 @@ pub unsafe extern "C" fn nsdd_options_destroy(options: *mut NsddOptions) {
 }
 
 /// Sets the method: one of `NsddMethod` (0 direct, 1 monolevel, 2
-/// multilevel); any other value is INVALID_ARGUMENT.
+/// multilevel, 3 cg); any other value is INVALID_ARGUMENT.
 ///
 /// # Safety
 /// `options` must be a live options handle.
@@ -797,9 +800,10 @@ pub unsafe extern "C" fn nsdd_options_set_method(options: *mut NsddOptions, meth
             0 => Method::Direct,
             1 => Method::Monolevel,
             2 => Method::Multilevel,
+            3 => Method::Cg,
             _ => {
                 return Err(invalid(format!(
-                    "method = {method}: expected 0 (direct), 1 (monolevel) or 2 (multilevel)"
+                    "method = {method}: expected 0 (direct), 1 (monolevel), 2 (multilevel) or 3 (cg)"
                 )))
             }
         };
@@ -1437,7 +1441,7 @@ fn alg_setup(h: &mut NsddAlgebraic, opts: &SolveOptions) -> FfiResult {
             ))
         }
         Method::Monolevel => false,
-        Method::Multilevel => true,
+        Method::Multilevel | Method::Cg => true,
     };
     let ns = h.subdomains.len();
     let mut subs = Vec::with_capacity(ns);
@@ -1571,6 +1575,7 @@ fn alg_setup(h: &mut NsddAlgebraic, opts: &SolveOptions) -> FfiResult {
             tolerance: opts.tolerance,
             max_iterations: opts.max_iterations,
             search_direction: opts.search_direction,
+            krylov: opts.method == Method::Cg,
         },
     )?;
     h.setup = Some(AlgSetup {

@@ -35,6 +35,9 @@ pub struct DdOptions {
     pub tolerance: f64,
     pub max_iterations: usize,
     pub search_direction: SearchDirection,
+    /// Conjugate gradient on the interface problem instead of the seed's
+    /// stationary iteration (linear case only; needs the coarse step).
+    pub krylov: bool,
 }
 
 /// Fraction of the stability limit `2 / λ_max` used by the automatic `d`.
@@ -45,6 +48,12 @@ const POWER_ITERATIONS: usize = 30;
 
 /// Indicator growth over the best value seen that counts as divergence.
 const DIVERGENCE_GROWTH: f64 = 1e6;
+
+/// Interface CG restarts (from the true residual) when its indicator grows
+/// this much above the best since the last restart...
+const CG_RESTART_GROWTH: f64 = 4.0;
+/// ...at most this often in one solve.
+const CG_MAX_RESTARTS: usize = 10;
 
 /// Restarts with a halved automatic `d` before divergence is reported.
 const MAX_D_RESTARTS: usize = 3;
@@ -67,6 +76,14 @@ pub const CONTRACTION_CAP: f64 = 0.99;
 /// geometric mean ratio over the last [`CONTRACTION_WINDOW`] iterations
 /// (fewer at the start; 0.5 with a single value), clamped to
 /// `[0, CONTRACTION_CAP]`.
+/// Whether the indicator made no net progress over the last
+/// [`CONTRACTION_WINDOW`] iterations: it sits on the floor that round-off
+/// allows, so an indicator already below the tolerance is accepted there.
+pub fn stalled(history: &[HistoryEntry]) -> bool {
+    let n = history.len();
+    n > CONTRACTION_WINDOW && history[n - 1].indicator >= history[n - 1 - CONTRACTION_WINDOW].indicator
+}
+
 pub fn stopping_factor(history: &[HistoryEntry]) -> f64 {
     let n = history.len();
     let rho = if n < 2 {
@@ -244,6 +261,9 @@ struct SubState {
     dforce2: f64,
     /// Stiffness of each cable.
     kc: Vec<f64>,
+    /// Interface CG: the displacement of the current forces (empty unless
+    /// the solver uses CG).
+    cg_v: Vec<f64>,
 }
 
 struct IfaceState {
@@ -262,6 +282,11 @@ struct IfaceState {
     /// a jump into the force it leaves unbalanced.
     stiffness: Vec<f64>,
     force_norm2: f64,
+    /// Interface CG: residual (jump), preconditioned residual, direction
+    /// (empty unless the solver uses CG).
+    cg_r: Vec<f64>,
+    cg_z: Vec<f64>,
+    cg_p: Vec<f64>,
 }
 
 /// Result of one DD solve.
@@ -352,6 +377,16 @@ impl DdSolver {
             });
         }
 
+        if opts.krylov && n_cables > 0 {
+            return Err(Error::MethodNotApplicable(format!(
+                "the interface conjugate gradient solves the linear case, but the model has {n_cables} unilateral cables; use multilevel"
+            )));
+        }
+        if opts.krylov && !opts.coarse {
+            return Err(Error::MethodNotApplicable(
+                "the interface conjugate gradient needs the coarse step".into(),
+            ));
+        }
         let use_coarse = opts.coarse && !dec.interfaces.is_empty();
         let t_coarse = Instant::now();
         // Interfaces and their macro bases.
@@ -371,6 +406,9 @@ impl DdSolver {
                 jump_norm2: 0.0,
                 stiffness: Vec::new(),
                 force_norm2: 0.0,
+                cg_r: Vec::new(),
+                cg_z: Vec::new(),
+                cg_p: Vec::new(),
             })
             .collect();
         if use_coarse {
@@ -436,6 +474,7 @@ impl DdSolver {
                 v_norm2: 0.0,
                 dlambda2: 0.0,
                 dforce2: 0.0,
+                cg_v: Vec::new(),
 
                 op,
             });
@@ -553,9 +592,20 @@ impl DdSolver {
             dof_maps: dec.subdomains.iter().map(|s| s.dofs.clone()).collect(),
             stats,
         };
+        if solver.opts.krylov {
+            for it in solver.ifaces.iter_mut() {
+                let n = it.force.len();
+                (it.cg_r, it.cg_z, it.cg_p) = (vec![0.0; n], vec![0.0; n], vec![0.0; n]);
+            }
+            for st in solver.subs.iter_mut() {
+                st.cg_v = vec![0.0; st.v.len()];
+            }
+        }
         let t_d = Instant::now();
         solver.d = match solver.opts.search_direction {
             SearchDirection::Value(d) => d,
+            // CG needs no step length: only the lumped weights.
+            SearchDirection::Auto if solver.opts.krylov => 0.0,
             SearchDirection::Auto => solver.auto_search_direction()?,
         };
         solver.stats.search_direction_s = t_d.elapsed().as_secs_f64();
@@ -766,6 +816,9 @@ impl DdSolver {
     }
 
     fn iterate(&mut self, warm: bool, mut progress: Option<&mut dyn FnMut(usize, f64)>) -> Result<DdOutcome> {
+        if self.opts.krylov {
+            return self.iterate_cg(warm, progress);
+        }
         let t0 = Instant::now();
         if !warm {
             for s in self.subs.iter_mut() {
@@ -776,15 +829,7 @@ impl DdSolver {
             }
         }
         let has_cables = self.n_cables > 0;
-        // Force scale of the problem: the assembled right-hand side.
-        let mut b_global = vec![0.0; self.n_free];
-        for (s, dofs) in self.subs.iter().zip(&self.dof_maps) {
-            for (l, &d) in dofs.iter().enumerate() {
-                b_global[d] += s.b[l];
-            }
-        }
-        let b_norm = kernels::norm2(&b_global).sqrt();
-        drop(b_global);
+        let b_norm = self.load_norm();
         let mut history = Vec::with_capacity(self.opts.max_iterations.min(100_000));
         self.global_step(has_cables);
         self.compute_jumps();
@@ -879,9 +924,9 @@ impl DdSolver {
                 });
             }
             best = best.min(indicator);
+            let recent = &history[history.len() - (iterations - restart_at)..];
             converged = indicator <= self.opts.tolerance
-                && indicator * stopping_factor(&history[history.len() - (iterations - restart_at)..])
-                    <= self.opts.tolerance;
+                && (indicator * stopping_factor(recent) <= self.opts.tolerance || stalled(recent));
         }
         let (u, lambda) = self.assemble();
         Ok(DdOutcome {
@@ -895,9 +940,19 @@ impl DdSolver {
 
     /// `r = b − C Bᵀ F − H k λ`, `y = K⁺ r`, coarse step, `V = y − Z f + R α`.
     fn global_step(&mut self, with_cables: bool) {
+        self.global_step_with(with_cables, true);
+    }
+
+    /// The global step; without `load`, for the interface forces alone
+    /// (`b = 0`: the homogeneous problem of the CG operator).
+    fn global_step_with(&mut self, with_cables: bool, load: bool) {
         let ifaces = &self.ifaces;
         self.subs.par_iter_mut().for_each(|s| {
-            s.r.copy_from_slice(&s.b);
+            if load {
+                s.r.copy_from_slice(&s.b);
+            } else {
+                s.r.iter_mut().for_each(|v| *v = 0.0);
+            }
             for &(i, is_lo) in &s.ifaces {
                 let it = &ifaces[i];
                 let (idx, coef) = if is_lo { (&it.lo_idx, -1.0) } else { (&it.hi_idx, 1.0) };
@@ -968,6 +1023,307 @@ impl DdSolver {
                 s.v_norm2 = kernels::norm2(&s.v);
             });
         }
+    }
+
+    /// Norm of the assembled right-hand side: the force scale of the
+    /// indicators.
+    fn load_norm(&self) -> f64 {
+        let mut b_global = vec![0.0; self.n_free];
+        for (s, dofs) in self.subs.iter().zip(&self.dof_maps) {
+            for (l, &d) in dofs.iter().enumerate() {
+                b_global[d] += s.b[l];
+            }
+        }
+        kernels::norm2(&b_global).sqrt()
+    }
+
+    /// Conjugate gradient on the interface problem (DESIGN.md §5, the
+    /// paper's outlook), linear case. With `S(F) = F + P f(F)` the forces
+    /// after the coarse step, the operator `A F = −J V_hom(F)` satisfies
+    /// `⟨F₂, A F₁⟩ = S₂ᵀ 𝔽 S₁` (`𝔽 = Σ B K⁺ Bᵀ`, `Gᵀ S = 0`), so it is
+    /// symmetric positive semi-definite and CG applies; the preconditioner
+    /// is the lumped `Σ_E B_E diag(K_E) B_Eᵀ` of the stationary iteration.
+    /// One homogeneous global step (one solve per subdomain and one coarse
+    /// solve) per iteration; the displacement is updated by linearity, so
+    /// no solve is added at the end. No allocation per iteration.
+    fn iterate_cg(&mut self, warm: bool, mut progress: Option<&mut dyn FnMut(usize, f64)>) -> Result<DdOutcome> {
+        let t0 = Instant::now();
+        if !warm {
+            for it in self.ifaces.iter_mut() {
+                it.force.iter_mut().for_each(|f| *f = 0.0);
+            }
+        }
+        let b_norm = self.load_norm().max(f64::MIN_POSITIVE);
+        let mut history = Vec::with_capacity(self.opts.max_iterations.min(100_000));
+        // r = J V(F) for the current forces.
+        self.global_step(false);
+        self.compute_jumps();
+        for s in self.subs.iter_mut() {
+            s.cg_v.copy_from_slice(&s.v);
+        }
+        for it in self.ifaces.iter_mut() {
+            it.cg_r.copy_from_slice(&it.jump);
+        }
+        let mut converged = self.ifaces.is_empty() || self.cg_indicator(b_norm) == 0.0;
+        if converged {
+            history.push(HistoryEntry {
+                iteration: 0,
+                time_s: t0.elapsed().as_secs_f64(),
+                indicator: 0.0,
+                jump: None,
+                cable_change: None,
+            });
+        }
+        self.precondition();
+        for it in self.ifaces.iter_mut() {
+            it.cg_p.copy_from_slice(&it.cg_z);
+        }
+        let mut rz = self.iface_dot(|it| (&it.cg_r, &it.cg_z));
+        let mut iterations = 0;
+        let (mut best, mut restarts, mut restart_at) = (f64::INFINITY, 0, 0);
+        while !converged && iterations < self.opts.max_iterations {
+            iterations += 1;
+            // q = A p = −J V_hom(p): the homogeneous global step with F = p.
+            for it in self.ifaces.iter_mut() {
+                std::mem::swap(&mut it.force, &mut it.cg_p);
+            }
+            self.global_step_with(false, false);
+            self.compute_jumps();
+            for it in self.ifaces.iter_mut() {
+                std::mem::swap(&mut it.force, &mut it.cg_p);
+            }
+            let pq = -self.iface_dot(|it| (&it.cg_p, &it.jump));
+            if !(pq > 0.0) || !rz.is_finite() {
+                // The direction lies in the operator's null space: the
+                // residual is as small as it can get (e.g. the macro space
+                // covers the whole interface). Accept it if it meets the
+                // tolerance; the jump is re-measured on the iterate itself.
+                let indicator = self.cg_indicator(b_norm);
+                if rz.is_finite() && indicator <= self.opts.tolerance {
+                    history.push(HistoryEntry {
+                        iteration: iterations,
+                        time_s: t0.elapsed().as_secs_f64(),
+                        indicator,
+                        jump: Some(indicator),
+                        cable_change: None,
+                    });
+                    converged = true;
+                    break;
+                }
+                return Err(Error::Diverged {
+                    iteration: iterations,
+                    message: format!(
+                        "the interface operator is not positive definite along the search direction (pᵀAp = {pq:.3e}): the problem is singular or badly conditioned"
+                    ),
+                });
+            }
+            let a = rz / pq;
+            // F += a p, r −= a q (q = −jump), V += a V_hom.
+            self.ifaces.par_iter_mut().for_each(|it| {
+                for ((f, r), (&p, &j)) in it
+                    .force
+                    .iter_mut()
+                    .zip(it.cg_r.iter_mut())
+                    .zip(it.cg_p.iter().zip(&it.jump))
+                {
+                    *f += a * p;
+                    *r += a * j;
+                }
+            });
+            self.subs.par_iter_mut().for_each(|s| {
+                for (v, &h) in s.cg_v.iter_mut().zip(&s.v) {
+                    *v += a * h;
+                }
+            });
+            let indicator = self.cg_indicator(b_norm);
+            history.push(HistoryEntry {
+                iteration: iterations,
+                time_s: t0.elapsed().as_secs_f64(),
+                indicator,
+                jump: Some(indicator),
+                cable_change: None,
+            });
+            if let Some(p) = progress.as_mut() {
+                p(iterations, indicator);
+            }
+            if !indicator.is_finite() {
+                return Err(Error::Diverged {
+                    iteration: iterations,
+                    message: "the iterate is no longer finite (NaN or Inf)".into(),
+                });
+            }
+            // Below the tolerance, stop once the contraction-aware test
+            // passes, or once restarts show the residual has reached the
+            // floor that round-off allows (it cannot fall further).
+            converged = indicator <= self.opts.tolerance
+                && (restarts >= 2 || {
+                    let recent = &history[history.len() - (iterations - restart_at)..];
+                    indicator * stopping_factor(recent) <= self.opts.tolerance || stalled(recent)
+                });
+            if converged {
+                break;
+            }
+            if indicator > CG_RESTART_GROWTH * best {
+                if restarts == CG_MAX_RESTARTS {
+                    break;
+                }
+                // The recurrences have drifted from the true operator (the
+                // coarse solve is exact only to round-off, and the residual
+                // fell by many orders): recompute V(F) and the residual from
+                // the forces and restart from the steepest direction.
+                restarts += 1;
+                restart_at = iterations;
+                self.global_step(false);
+                self.compute_jumps();
+                for s in self.subs.iter_mut() {
+                    s.cg_v.copy_from_slice(&s.v);
+                }
+                for it in self.ifaces.iter_mut() {
+                    it.cg_r.copy_from_slice(&it.jump);
+                }
+                self.precondition();
+                for it in self.ifaces.iter_mut() {
+                    it.cg_p.copy_from_slice(&it.cg_z);
+                }
+                rz = self.iface_dot(|it| (&it.cg_r, &it.cg_z));
+                best = f64::INFINITY;
+                continue;
+            }
+            best = best.min(indicator);
+            self.precondition();
+            let rz_new = self.iface_dot(|it| (&it.cg_r, &it.cg_z));
+            let beta = rz_new / rz;
+            rz = rz_new;
+            self.ifaces.par_iter_mut().for_each(|it| {
+                for (p, &z) in it.cg_p.iter_mut().zip(&it.cg_z) {
+                    *p = z + beta * *p;
+                }
+            });
+        }
+        for s in self.subs.iter_mut() {
+            s.v.copy_from_slice(&s.cg_v);
+        }
+        let (u, lambda) = self.assemble();
+        Ok(DdOutcome {
+            u,
+            lambda,
+            converged,
+            iterations,
+            history,
+        })
+    }
+
+    /// `out = A p = −J V_hom(p)`, the CG operator on the interface vector
+    /// (interfaces one after the other): for tests of its symmetry.
+    #[doc(hidden)]
+    pub fn apply_interface_operator(&mut self, p: &[f64], out: &mut [f64]) {
+        let mut off = 0;
+        for it in self.ifaces.iter_mut() {
+            let n = it.force.len();
+            std::mem::swap(&mut it.force, &mut it.cg_p);
+            it.force.clear();
+            it.force.extend_from_slice(&p[off..off + n]);
+            off += n;
+        }
+        self.global_step_with(false, false);
+        self.compute_jumps();
+        let mut off = 0;
+        for it in self.ifaces.iter_mut() {
+            let n = it.force.len();
+            for (o, j) in out[off..off + n].iter_mut().zip(&it.jump) {
+                *o = -j;
+            }
+            off += n;
+            std::mem::swap(&mut it.force, &mut it.cg_p);
+        }
+    }
+
+    /// The indicator of the CG iterate (`cg_v`): the true jump `J V`, as a
+    /// length and as a force (see `iterate`). Leaves `jump` = `J V`.
+    fn cg_indicator(&mut self, b_norm: f64) -> f64 {
+        for s in self.subs.iter_mut() {
+            std::mem::swap(&mut s.v, &mut s.cg_v);
+        }
+        self.compute_jumps();
+        let v2: f64 = self.subs.iter().map(|s| kernels::norm2(&s.v)).sum();
+        for s in self.subs.iter_mut() {
+            std::mem::swap(&mut s.v, &mut s.cg_v);
+        }
+        let vn = v2.sqrt().max(f64::MIN_POSITIVE);
+        let jump = self.ifaces.iter().map(|i| i.jump_norm2).sum::<f64>().sqrt() / vn;
+        let force = self.ifaces.iter().map(|i| i.force_norm2).sum::<f64>().sqrt() / b_norm;
+        if v2.is_finite() {
+            jump.max(force)
+        } else {
+            f64::NAN
+        }
+    }
+
+    /// `z = (I − P Pᵀ) Σ_E B_E K_E B_Eᵀ r`: the lumped preconditioner (the
+    /// subdomain stiffness on its interface dofs), then the macro part
+    /// removed. `range(P)` is in the null space of the CG operator (the
+    /// coarse step absorbs it); leaving it in `z` lets round-off grow there
+    /// and break the iteration on long runs.
+    fn precondition(&mut self) {
+        let ifaces = &self.ifaces;
+        self.subs.par_iter_mut().for_each(|s| {
+            for &(i, is_lo) in &s.ifaces {
+                let it = &ifaces[i];
+                let (idx, coef) = if is_lo { (&it.lo_idx, 1.0) } else { (&it.hi_idx, -1.0) };
+                kernels::scatter_add(&mut s.g, idx, &it.cg_r, coef);
+            }
+            // s.r is free between global steps: K_E B_Eᵀ r goes there.
+            s.op.apply(&s.g, &mut s.r);
+            for &l in &s.iface_dofs {
+                s.g[l as usize] = 0.0;
+            }
+        });
+        let subs = &self.subs;
+        self.ifaces.par_iter_mut().for_each(|it| {
+            kernels::jump(&mut it.cg_z, &subs[it.lo].r, &it.lo_idx, &subs[it.hi].r, &it.hi_idx);
+        });
+        // Circulations of the redundant pair forces at cross points (zero
+        // net force on every subdomain) are null directions too: project z
+        // onto the differences of subdomain forces, `z ← (B_lo z − B_hi z)/m`
+        // per dof of multiplicity m (the identity where m = 2).
+        let ifaces = &self.ifaces;
+        self.subs.par_iter_mut().for_each(|s| {
+            for &(i, is_lo) in &s.ifaces {
+                let it = &ifaces[i];
+                let (idx, coef) = if is_lo { (&it.lo_idx, 1.0) } else { (&it.hi_idx, -1.0) };
+                kernels::scatter_add(&mut s.g, idx, &it.cg_z, coef);
+            }
+        });
+        let subs = &self.subs;
+        self.ifaces.par_iter_mut().for_each(|it| {
+            let (lo, hi) = (&subs[it.lo], &subs[it.hi]);
+            for ((z, &a), &b) in it.cg_z.iter_mut().zip(&it.lo_idx).zip(&it.hi_idx) {
+                *z = (lo.g[a as usize] - hi.g[b as usize]) * lo.inv_mult[a as usize];
+            }
+            for q in 0..it.p.ncols() {
+                let col = it.p.col(q);
+                let c: f64 = col.iter().zip(&it.cg_z).map(|(a, b)| a * b).sum();
+                for (z, a) in it.cg_z.iter_mut().zip(col.iter()) {
+                    *z -= c * a;
+                }
+            }
+        });
+        self.subs.par_iter_mut().for_each(|s| {
+            for &l in &s.iface_dofs {
+                s.g[l as usize] = 0.0;
+            }
+        });
+    }
+
+    /// `Σ_Γ ⟨x_Γ, y_Γ⟩` over the interfaces, summed in interface order.
+    fn iface_dot(&self, pick: impl Fn(&IfaceState) -> (&Vec<f64>, &Vec<f64>)) -> f64 {
+        self.ifaces
+            .iter()
+            .map(|it| {
+                let (x, y) = pick(it);
+                x.iter().zip(y).map(|(a, b)| a * b).sum::<f64>()
+            })
+            .sum()
     }
 
     /// `jump = J V` on every interface.

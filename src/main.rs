@@ -57,6 +57,8 @@ enum MethodArg {
     Direct,
     Monolevel,
     Multilevel,
+    /// Interface conjugate gradient with the coarse step (linear case)
+    Cg,
 }
 
 impl From<MethodArg> for Method {
@@ -65,6 +67,7 @@ impl From<MethodArg> for Method {
             MethodArg::Direct => Method::Direct,
             MethodArg::Monolevel => Method::Monolevel,
             MethodArg::Multilevel => Method::Multilevel,
+            MethodArg::Cg => Method::Cg,
         }
     }
 }

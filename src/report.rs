@@ -515,7 +515,7 @@ pub fn accuracy(scene: &Scene, opts: &AccuracyOptions, mut obs: Observer<'_>) ->
     }
     tols.sort_by(|a, b| b.partial_cmp(a).unwrap());
     tols.dedup();
-    let iterative = [Method::Monolevel, Method::Multilevel];
+    let iterative = [Method::Monolevel, Method::Multilevel, Method::Cg];
     let runs = 1 + iterative.len() * tols.len();
     start(&mut obs, "direct", 0, runs);
     let dopts = method_options(
@@ -824,7 +824,7 @@ pub fn scaling(opts: &ScalingOptions, mut obs: Observer<'_>) -> Result<ScalingRe
     }
     let mut plan: Vec<(&str, usize, usize)> = opts.subdomains.iter().map(|&n| ("strong", strong, n)).collect();
     plan.extend(opts.sizes.iter().zip(&opts.subdomains).map(|(&s, &n)| ("weak", s, n)));
-    let methods = [Method::Monolevel, Method::Multilevel];
+    let methods = [Method::Monolevel, Method::Multilevel, Method::Cg];
     let runs = plan.len() * methods.len();
     let mut cache: BTreeMap<usize, (Scene, SolveResult, usize, usize)> = BTreeMap::new();
     let mut rows = Vec::new();

@@ -87,6 +87,9 @@ pub enum Method {
     Monolevel,
     /// The paper's iteration with the kernel-enriched macro space.
     Multilevel,
+    /// Conjugate gradient on the interface problem with the same coarse
+    /// step (the paper's outlook; linear case only). An nsdd addition.
+    Cg,
 }
 
 impl Method {
@@ -95,6 +98,7 @@ impl Method {
             Method::Direct => "direct",
             Method::Monolevel => "monolevel",
             Method::Multilevel => "multilevel",
+            Method::Cg => "cg",
         }
     }
 }
@@ -106,8 +110,9 @@ impl std::str::FromStr for Method {
             "direct" => Ok(Method::Direct),
             "monolevel" => Ok(Method::Monolevel),
             "multilevel" => Ok(Method::Multilevel),
+            "cg" => Ok(Method::Cg),
             _ => Err(format!(
-                "unknown method '{s}' (expected direct, monolevel or multilevel)"
+                "unknown method '{s}' (expected direct, monolevel, multilevel or cg)"
             )),
         }
     }

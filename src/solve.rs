@@ -95,13 +95,14 @@ pub fn decompose(model: &Model, scene: &Scene, subdomains: usize) -> Result<Deco
 pub fn prepare(model: &Model, scene: &Scene, opts: &SolveOptions) -> Result<Prepared> {
     Ok(match opts.method {
         Method::Direct => Prepared::Direct(Box::new(DirectSolver::new(model)?)),
-        Method::Monolevel | Method::Multilevel => {
+        Method::Monolevel | Method::Multilevel | Method::Cg => {
             let dec = decompose(model, scene, opts.subdomains)?;
             let dd = DdSolver::new(
                 model,
                 &dec,
                 DdOptions {
-                    coarse: opts.method == Method::Multilevel,
+                    coarse: opts.method != Method::Monolevel,
+                    krylov: opts.method == Method::Cg,
                     tolerance: opts.tolerance,
                     max_iterations: opts.max_iterations,
                     search_direction: opts.search_direction,

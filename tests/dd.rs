@@ -132,6 +132,7 @@ fn several_load_cases_reuse_one_setup() {
             tolerance: 1e-9,
             max_iterations: 100_000,
             search_direction: SearchDirection::Auto,
+            krylov: false,
         },
     )
     .unwrap();
@@ -240,4 +241,32 @@ fn stopping_factor_follows_the_contraction_rate() {
         cable_change: None,
     }));
     assert!((stopping_factor(&h) - 5.0).abs() < 1e-9);
+}
+
+/// The interface conjugate gradient (`method = "cg"`) on linear grids and a
+/// 3D lattice: the direct answer to 10x the tolerance, with far fewer
+/// iterations than the stationary iteration.
+#[test]
+fn interface_cg_matches_direct_with_fewer_iterations() {
+    let scene = grid_scene(12, false);
+    for n in [2, 4, 9, 16] {
+        let cg = assert_matches_direct(&scene, Method::Cg, n, 1e-8);
+        let ml = assert_matches_direct(&scene, Method::Multilevel, n, 1e-8);
+        assert!(cg * 3 < ml, "{n} subdomains: cg {cg} iterations, multilevel {ml}");
+    }
+    let lattice = cube_lattice(3, false, None);
+    assert_matches_direct(&lattice, Method::Cg, 8, 1e-8);
+    // Regular halves (monolevel applies there too).
+    let planar = planar_grid(6, Some(&|_, j| (j >= 3) as usize));
+    assert_matches_direct(&planar, Method::Cg, 2, 1e-10);
+}
+
+/// CG solves the linear case only: with unilateral cables it refuses by name.
+#[test]
+fn interface_cg_refuses_unilateral_cables() {
+    let scene = grid_scene(6, true);
+    match solve(&scene, &opts(Method::Cg, 4, 1e-8)) {
+        Err(Error::MethodNotApplicable(m)) => assert!(m.contains("unilateral") && m.contains("multilevel"), "{m}"),
+        other => panic!("{other:?}"),
+    }
 }

@@ -35,6 +35,7 @@ fn multilevel(model: &Model, dec: &Decomposition) -> DdSolver {
             tolerance: 1e-8,
             max_iterations: 1000,
             search_direction: SearchDirection::Auto,
+            krylov: false,
         },
     )
     .unwrap()

@@ -31,7 +31,8 @@ static GLOBAL: Counting = Counting;
 
 #[test]
 fn extra_iterations_allocate_nothing() {
-    for unilateral in [false, true] {
+    // The stationary iteration, linear and nonsmooth, and the interface CG.
+    for (unilateral, krylov) in [(false, false), (true, false), (false, true)] {
         let scene = grid(&GridParams {
             nx: 8,
             ny: 8,
@@ -46,6 +47,7 @@ fn extra_iterations_allocate_nothing() {
             tolerance: 0.0,
             max_iterations: 1,
             search_direction: SearchDirection::Auto,
+            krylov,
         };
         let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();
         pool.install(|| {
@@ -60,12 +62,16 @@ fn extra_iterations_allocate_nothing() {
                 n
             };
             count(&mut dd, 1); // warm-up of the thread pool
-            let one = count(&mut dd, 1);
-            let many = count(&mut dd, 41);
+                               // The thread pool itself allocates now and then when work is
+                               // stolen (seen: 2 allocations in ~1 of 6 runs, in either
+                               // count); the solver's own allocations repeat in every run, so
+                               // the minimum over a few runs is what the iterations cost.
+            let one = (0..5).map(|_| count(&mut dd, 1)).min().unwrap();
+            let many = (0..5).map(|_| count(&mut dd, 41)).min().unwrap();
             assert_eq!(
                 many,
                 one,
-                "40 extra iterations made {} allocations",
+                "unilateral {unilateral}, krylov {krylov}: 40 extra iterations made {} allocations",
                 many as i64 - one as i64
             );
         });

@@ -729,6 +729,7 @@ fn floating_subdomains_match_direct() {
             tolerance: 1e-8,
             max_iterations: 10,
             search_direction: SearchDirection::Auto,
+            krylov: false,
         },
     )
     .unwrap();
@@ -809,6 +810,7 @@ fn resolving_reuses_factorizations_bit_identically() {
         tolerance: 1e-9,
         max_iterations: 100_000,
         search_direction: SearchDirection::Auto,
+        krylov: false,
     };
     let mut dd = DdSolver::new(&model, &dec, o.clone()).unwrap();
     let f = model.load_cases[0].clone();
