@@ -674,7 +674,7 @@ enum NsddStatus nsdd_alg_num_cables(const struct NsddAlgebraic *alg, size_t *out
 /**
  * Factors every subdomain (in parallel), builds the interfaces, the macro
  * space and the coarse problem, and picks the search direction. `options`
- * gives the method (monolevel or multilevel; direct is
+ * gives the method (monolevel, multilevel or cg; direct is
  * METHOD_NOT_APPLICABLE), tolerance, iteration limit and search direction;
  * NULL means multilevel with the defaults. Its subdomain count is ignored.
  * Errors: INVALID_ARGUMENT (a subdomain or the dof points not set, a

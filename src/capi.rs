@@ -1437,7 +1437,7 @@ fn alg_setup(h: &mut NsddAlgebraic, opts: &SolveOptions) -> FfiResult {
         Method::Direct => {
             return Err(fail(
                 NsddStatus::MethodNotApplicable,
-                "method not applicable: the algebraic level runs monolevel or multilevel, not direct",
+                "method not applicable: the algebraic level runs monolevel, multilevel or cg, not direct",
             ))
         }
         Method::Monolevel => false,
@@ -1588,7 +1588,7 @@ fn alg_setup(h: &mut NsddAlgebraic, opts: &SolveOptions) -> FfiResult {
 
 /// Factors every subdomain (in parallel), builds the interfaces, the macro
 /// space and the coarse problem, and picks the search direction. `options`
-/// gives the method (monolevel or multilevel; direct is
+/// gives the method (monolevel, multilevel or cg; direct is
 /// METHOD_NOT_APPLICABLE), tolerance, iteration limit and search direction;
 /// NULL means multilevel with the defaults. Its subdomain count is ignored.
 /// Errors: INVALID_ARGUMENT (a subdomain or the dof points not set, a
