@@ -76,14 +76,6 @@ pub const CONTRACTION_CAP: f64 = 0.99;
 /// geometric mean ratio over the last [`CONTRACTION_WINDOW`] iterations
 /// (fewer at the start; 0.5 with a single value), clamped to
 /// `[0, CONTRACTION_CAP]`.
-/// Whether the indicator made no net progress over the last
-/// [`CONTRACTION_WINDOW`] iterations: it sits on the floor that round-off
-/// allows, so an indicator already below the tolerance is accepted there.
-pub fn stalled(history: &[HistoryEntry]) -> bool {
-    let n = history.len();
-    n > CONTRACTION_WINDOW && history[n - 1].indicator >= history[n - 1 - CONTRACTION_WINDOW].indicator
-}
-
 pub fn stopping_factor(history: &[HistoryEntry]) -> f64 {
     let n = history.len();
     let rho = if n < 2 {
@@ -98,6 +90,14 @@ pub fn stopping_factor(history: &[HistoryEntry]) -> f64 {
         }
     };
     1.0 / (1.0 - rho.clamp(0.0, CONTRACTION_CAP))
+}
+
+/// Whether the indicator made no net progress over the last
+/// [`CONTRACTION_WINDOW`] iterations: it sits on the floor that round-off
+/// allows, so an indicator already below the tolerance is accepted there.
+pub fn stalled(history: &[HistoryEntry]) -> bool {
+    let n = history.len();
+    n > CONTRACTION_WINDOW && history[n - 1].indicator >= history[n - 1 - CONTRACTION_WINDOW].indicator
 }
 
 /// A unilateral cable seen from its subdomain: the column `h_c` of `H`
@@ -821,12 +821,7 @@ impl DdSolver {
         }
         let t0 = Instant::now();
         if !warm {
-            for s in self.subs.iter_mut() {
-                s.lambda.iter_mut().for_each(|v| *v = 0.0);
-            }
-            for it in self.ifaces.iter_mut() {
-                it.force.iter_mut().for_each(|f| *f = 0.0);
-            }
+            self.reset_unknowns();
         }
         let has_cables = self.n_cables > 0;
         let b_norm = self.load_norm();
@@ -896,12 +891,7 @@ impl DdSolver {
                 restarts += 1;
                 self.d *= 0.5;
                 self.stats.search_direction = self.d;
-                for s in self.subs.iter_mut() {
-                    s.lambda.iter_mut().for_each(|v| *v = 0.0);
-                }
-                for it in self.ifaces.iter_mut() {
-                    it.force.iter_mut().for_each(|f| *f = 0.0);
-                }
+                self.reset_unknowns();
                 self.global_step(has_cables);
                 self.compute_jumps();
                 best = f64::INFINITY;
@@ -1025,6 +1015,16 @@ impl DdSolver {
         }
     }
 
+    /// Zero interface forces and cable slacks: a cold start.
+    fn reset_unknowns(&mut self) {
+        for s in self.subs.iter_mut() {
+            s.lambda.iter_mut().for_each(|v| *v = 0.0);
+        }
+        for it in self.ifaces.iter_mut() {
+            it.force.iter_mut().for_each(|f| *f = 0.0);
+        }
+    }
+
     /// Norm of the assembled right-hand side: the force scale of the
     /// indicators.
     fn load_norm(&self) -> f64 {
@@ -1049,21 +1049,11 @@ impl DdSolver {
     fn iterate_cg(&mut self, warm: bool, mut progress: Option<&mut dyn FnMut(usize, f64)>) -> Result<DdOutcome> {
         let t0 = Instant::now();
         if !warm {
-            for it in self.ifaces.iter_mut() {
-                it.force.iter_mut().for_each(|f| *f = 0.0);
-            }
+            self.reset_unknowns();
         }
         let b_norm = self.load_norm().max(f64::MIN_POSITIVE);
         let mut history = Vec::with_capacity(self.opts.max_iterations.min(100_000));
-        // r = J V(F) for the current forces.
-        self.global_step(false);
-        self.compute_jumps();
-        for s in self.subs.iter_mut() {
-            s.cg_v.copy_from_slice(&s.v);
-        }
-        for it in self.ifaces.iter_mut() {
-            it.cg_r.copy_from_slice(&it.jump);
-        }
+        let mut rz = self.cg_start();
         let mut converged = self.ifaces.is_empty() || self.cg_indicator(b_norm) == 0.0;
         if converged {
             history.push(HistoryEntry {
@@ -1074,11 +1064,6 @@ impl DdSolver {
                 cable_change: None,
             });
         }
-        self.precondition();
-        for it in self.ifaces.iter_mut() {
-            it.cg_p.copy_from_slice(&it.cg_z);
-        }
-        let mut rz = self.iface_dot(|it| (&it.cg_r, &it.cg_z));
         let mut iterations = 0;
         let (mut best, mut restarts, mut restart_at) = (f64::INFINITY, 0, 0);
         while !converged && iterations < self.opts.max_iterations {
@@ -1173,19 +1158,7 @@ impl DdSolver {
                 // the forces and restart from the steepest direction.
                 restarts += 1;
                 restart_at = iterations;
-                self.global_step(false);
-                self.compute_jumps();
-                for s in self.subs.iter_mut() {
-                    s.cg_v.copy_from_slice(&s.v);
-                }
-                for it in self.ifaces.iter_mut() {
-                    it.cg_r.copy_from_slice(&it.jump);
-                }
-                self.precondition();
-                for it in self.ifaces.iter_mut() {
-                    it.cg_p.copy_from_slice(&it.cg_z);
-                }
-                rz = self.iface_dot(|it| (&it.cg_r, &it.cg_z));
+                rz = self.cg_start();
                 best = f64::INFINITY;
                 continue;
             }
@@ -1236,6 +1209,24 @@ impl DdSolver {
             off += n;
             std::mem::swap(&mut it.force, &mut it.cg_p);
         }
+    }
+
+    /// (Re)starts CG from the current forces: `V = V(F)` by a global step,
+    /// `r = J V`, `z = M r`, `p = z`. Returns `⟨r, z⟩`.
+    fn cg_start(&mut self) -> f64 {
+        self.global_step(false);
+        self.compute_jumps();
+        for s in self.subs.iter_mut() {
+            s.cg_v.copy_from_slice(&s.v);
+        }
+        for it in self.ifaces.iter_mut() {
+            it.cg_r.copy_from_slice(&it.jump);
+        }
+        self.precondition();
+        for it in self.ifaces.iter_mut() {
+            it.cg_p.copy_from_slice(&it.cg_z);
+        }
+        self.iface_dot(|it| (&it.cg_r, &it.cg_z))
     }
 
     /// The indicator of the CG iterate (`cg_v`): the true jump `J V`, as a

@@ -261,7 +261,12 @@ pub fn solve_with_progress(scene: &Scene, opts: &SolveOptions, mut progress: Pro
     let main = case_result(&model, "loads", 1.0, &top, slack_threshold(opts));
     let (n_sub, element_subdomain, d) = match &prepared {
         Prepared::Direct(_) => (1, Vec::new(), None),
-        Prepared::Dd(dd, dec) => (dec.len(), dec.partition.part_of.clone(), Some(dd.search_direction())),
+        // CG has no step length `d`: only the stationary iteration reports one.
+        Prepared::Dd(dd, dec) => (
+            dec.len(),
+            dec.partition.part_of.clone(),
+            (opts.method != Method::Cg).then(|| dd.search_direction()),
+        ),
     };
     Ok(SolveResult {
         scene: model.name.clone(),

@@ -254,6 +254,15 @@ fn interface_cg_matches_direct_with_fewer_iterations() {
         let ml = assert_matches_direct(&scene, Method::Multilevel, n, 1e-8);
         assert!(cg * 3 < ml, "{n} subdomains: cg {cg} iterations, multilevel {ml}");
     }
+    // No step length to report for CG; the stationary iteration has one.
+    assert!(solve(&scene, &opts(Method::Cg, 4, 1e-8))
+        .unwrap()
+        .search_direction
+        .is_none());
+    assert!(solve(&scene, &opts(Method::Multilevel, 4, 1e-8))
+        .unwrap()
+        .search_direction
+        .is_some());
     let lattice = cube_lattice(3, false, None);
     assert_matches_direct(&lattice, Method::Cg, 8, 1e-8);
     // Regular halves (monolevel applies there too).
