@@ -670,30 +670,32 @@ fn tiny_stiffness_brace_matches_analytic() {
         // DD: brace in its own subdomain.
         let mut split = scene.clone();
         split.elements.subdomain = vec![0, 0, 1, 1];
-        match solve(&split, &with_iters(opts(Method::Multilevel, 2, 1e-10), 20_000)) {
-            Ok(m) => {
-                assert_finite(&m, "multilevel");
-                let eu = rel_err(&flat(&m.displacements), &flat(&r.displacements));
-                eprintln!(
-                    "brace {ratio:e}: converged={} it={} eu={eu:.1e}",
-                    m.converged, m.iterations
-                );
-                assert!(
-                    !m.converged || eu < 1e-8,
-                    "ratio {ratio:e}: converged with error {eu:.1e}"
-                );
-                assert!(m.converged || ratio < 1e-4, "ratio {ratio:e}: not converged");
-            }
-            Err(e) => {
-                eprintln!("brace {ratio:e}: {e}");
-                assert!(
-                    ratio < 1e-4
-                        && matches!(
-                            e,
-                            Error::Diverged { .. } | Error::IndefiniteSubdomain { .. } | Error::Mechanism(_)
-                        ),
-                    "{e}"
-                );
+        for method in [Method::Multilevel, Method::Cg] {
+            match solve(&split, &with_iters(opts(method, 2, 1e-10), 20_000)) {
+                Ok(m) => {
+                    assert_finite(&m, "multilevel");
+                    let eu = rel_err(&flat(&m.displacements), &flat(&r.displacements));
+                    eprintln!(
+                        "{method:?} brace {ratio:e}: converged={} it={} eu={eu:.1e}",
+                        m.converged, m.iterations
+                    );
+                    assert!(
+                        !m.converged || eu < 1e-8,
+                        "ratio {ratio:e}: converged with error {eu:.1e}"
+                    );
+                    assert!(m.converged || ratio < 1e-4, "ratio {ratio:e}: not converged");
+                }
+                Err(e) => {
+                    eprintln!("{method:?} brace {ratio:e}: {e}");
+                    assert!(
+                        ratio < 1e-4
+                            && matches!(
+                                e,
+                                Error::Diverged { .. } | Error::IndefiniteSubdomain { .. } | Error::Mechanism(_)
+                            ),
+                        "{e}"
+                    );
+                }
             }
         }
     }
