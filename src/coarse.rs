@@ -176,6 +176,8 @@ pub struct CoarseProblem {
     work_a: Vec<f64>,
     /// Seconds spent assembling and factoring.
     pub setup_s: f64,
+    last_residual: f64,
+    worst_residual: f64,
 }
 
 impl std::fmt::Debug for CoarseProblem {
@@ -188,10 +190,20 @@ impl std::fmt::Debug for CoarseProblem {
     }
 }
 
-/// Refinement passes per coarse solve.
-const REFINEMENTS: usize = 2;
-/// Regularisation of the macro block, relative to its largest diagonal entry.
+/// Most refinement passes per coarse solve; they stop earlier once the
+/// residual is at round-off or no longer halves.
+const MAX_REFINEMENTS: usize = 8;
+/// Relative coarse residual at which refinement stops.
+const REFINEMENT_TARGET: f64 = 1e-14;
+/// Regularisation of the macro block, relative to each diagonal entry: a
+/// shift relative to the largest entry would swamp the stiff macro modes
+/// (the diagonal of `L` spans 7 decades on a 2.4e5-dof plate with 64
+/// subdomains) and leave refinement stalled at 10% residual.
 const MACRO_REGULARIZATION: f64 = 1e-10;
+/// Floor of the diagonal entries the regularisation is relative to, as a
+/// fraction of the largest: keeps the redundant (null) directions at cross
+/// points clear of round-off when their diagonal entries are tiny.
+const REGULARIZATION_FLOOR: f64 = 1e-8;
 /// Columns per batched solve when forming `L_γ⁻¹ G`.
 const SCHUR_BATCH: usize = 32;
 
@@ -281,10 +293,16 @@ impl CoarseProblem {
                 }
             }
         }
-        aug.extend((0..nf).map(|i| (i, i, MACRO_REGULARIZATION * lscale)));
+        aug.extend(
+            ldiag
+                .iter()
+                .enumerate()
+                .map(|(i, &d)| (i, i, MACRO_REGULARIZATION * d.max(REGULARIZATION_FLOOR * lscale))),
+        );
         let aug = lower_csc(nf, &aug).map_err(|e| Error::Numerical(format!("coarse operator: {e:?}")))?;
-        let mut factor = SparseCholesky::factor_checked(&aug, SCHUR_BATCH, 0.1 * MACRO_REGULARIZATION * 1e-4)
-            .map_err(|e| Error::Numerical(format!("the coarse problem could not be factored: {e:?}")))?;
+        let mut factor =
+            SparseCholesky::factor_checked(&aug, SCHUR_BATCH, 0.01 * MACRO_REGULARIZATION * REGULARIZATION_FLOOR)
+                .map_err(|e| Error::Numerical(format!("the coarse problem could not be factored: {e:?}")))?;
         drop(aug);
 
         // S = Gᵀ L_γ⁻¹ G, in batches of columns.
@@ -340,6 +358,8 @@ impl CoarseProblem {
             work_f: vec![0.0; nf],
             work_f2: vec![0.0; nf],
             work_a: vec![0.0; na],
+            last_residual: 0.0,
+            worst_residual: 0.0,
             setup_s: t0.elapsed().as_secs_f64(),
         })
     }
@@ -366,7 +386,9 @@ impl CoarseProblem {
         let mut res = std::mem::take(&mut self.residual);
         let mut cor = std::mem::take(&mut self.correction);
         self.inner_solve(&rhs, &mut sol);
-        for _ in 0..REFINEMENTS {
+        let rhs_norm = rhs.iter().map(|v| v * v).sum::<f64>().sqrt();
+        let mut last = f64::INFINITY;
+        for pass in 0..=MAX_REFINEMENTS {
             // res = rhs − [L f − G α; Gᵀ f]
             sym_matvec(&self.l_lower, &sol[..nf], &mut res[..nf]);
             g_mul_into(&self.g_ptr, &self.g_row, &self.g_val, &sol[nf..], &mut self.work_f);
@@ -377,6 +399,21 @@ impl CoarseProblem {
             for i in nf..n {
                 res[i] = rhs[i] - res[i];
             }
+            let ratio = if rhs_norm > 0.0 {
+                res.iter().map(|v| v * v).sum::<f64>().sqrt() / rhs_norm
+            } else {
+                0.0
+            };
+            // Stop at round-off, when refinement stalls, or out of passes;
+            // the residual of the solution kept is what is recorded.
+            if !(ratio > REFINEMENT_TARGET) || !(ratio < 0.5 * last) || pass == MAX_REFINEMENTS {
+                self.last_residual = ratio;
+                if !(ratio <= self.worst_residual) {
+                    self.worst_residual = ratio;
+                }
+                break;
+            }
+            last = ratio;
             self.inner_solve(&res, &mut cor);
             for i in 0..n {
                 sol[i] += cor[i];
@@ -425,6 +462,18 @@ impl CoarseProblem {
             }
         }
         m
+    }
+
+    /// Relative residual `‖rhs − A x‖ / ‖rhs‖` of the exact coarse system
+    /// after the last solve's refinement.
+    pub fn last_residual(&self) -> f64 {
+        self.last_residual
+    }
+
+    /// Largest [`last_residual`](Self::last_residual) since set-up (NaN if
+    /// any solve produced NaN): how far from exact the coarse step has been.
+    pub fn worst_residual(&self) -> f64 {
+        self.worst_residual
     }
 
     /// Stored entries of the coarse factor.

@@ -657,6 +657,12 @@ impl DdSolver {
         self.coarse.as_ref().map(|c| c.operator())
     }
 
+    /// Worst relative residual of the coarse solves since set-up
+    /// ([`CoarseProblem::worst_residual`]), if there is a coarse step.
+    pub fn coarse_residual(&self) -> Option<f64> {
+        self.coarse.as_ref().map(|c| c.worst_residual())
+    }
+
     /// The factored coarse problem (multilevel only), e.g. to time its solve.
     pub fn coarse_problem_mut(&mut self) -> Option<&mut CoarseProblem> {
         self.coarse.as_mut()

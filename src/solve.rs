@@ -184,6 +184,9 @@ impl Prepared {
     }
 }
 
+/// Worst relative coarse residual above which the result carries a note.
+const COARSE_RESIDUAL_NOTE: f64 = 1e-6;
+
 /// Relative slack threshold of a method: round-off for the direct solver,
 /// ten times the tolerance for the iterative ones.
 fn slack_threshold(opts: &SolveOptions) -> f64 {
@@ -268,6 +271,15 @@ pub fn solve_with_progress(scene: &Scene, opts: &SolveOptions, mut progress: Pro
             (opts.method != Method::Cg).then(|| dd.search_direction()),
         ),
     };
+    let mut notes = model.notes.clone();
+    if let Prepared::Dd(dd, _) = &prepared {
+        if let Some(r) = dd.coarse_residual().filter(|r| !(*r <= COARSE_RESIDUAL_NOTE)) {
+            notes.push(format!(
+                "the coarse problem was solved to a relative residual of only {r:.1e} (badly conditioned \
+                 macro space): accuracy near that level is not guaranteed"
+            ));
+        }
+    }
     Ok(SolveResult {
         scene: model.name.clone(),
         method: opts.method.name().to_string(),
@@ -285,7 +297,7 @@ pub fn solve_with_progress(scene: &Scene, opts: &SolveOptions, mut progress: Pro
             solve: t_solve.elapsed().as_secs_f64(),
         },
         search_direction: d,
-        notes: model.notes.clone(),
+        notes,
         load_cases,
         steps,
         element_subdomain,
