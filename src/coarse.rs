@@ -194,7 +194,7 @@ impl std::fmt::Debug for CoarseProblem {
 /// residual is at round-off or no longer halves.
 const MAX_REFINEMENTS: usize = 8;
 /// Relative coarse residual at which refinement stops.
-const REFINEMENT_TARGET: f64 = 1e-12;
+const REFINEMENT_TARGET: f64 = 1e-14;
 /// Regularisation of the macro block, relative to each diagonal entry: a
 /// shift relative to the largest entry would swamp the stiff macro modes
 /// (the diagonal of `L` spans 7 decades on a 2.4e5-dof plate with 64
