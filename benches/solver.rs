@@ -76,6 +76,7 @@ fn multilevel(max_iterations: usize) -> DdOptions {
         max_iterations,
         search_direction: SearchDirection::Auto,
         krylov: false,
+        preconditioner: Default::default(),
     }
 }
 

@@ -104,6 +104,22 @@ typedef enum NsddMethod {
 } NsddMethod;
 
 /**
+ * Preconditioner of the interface CG (values for
+ * `nsdd_options_set_preconditioner`).
+ */
+typedef enum NsddPreconditioner {
+    /**
+     * Schur complement of each subdomain on its interface (default): one
+     * interior solve per subdomain and iteration, fewer iterations.
+     */
+    NSDD_PRECONDITIONER_DIRICHLET = 0,
+    /**
+     * The subdomain stiffness on its interface dofs; no extra factorization.
+     */
+    NSDD_PRECONDITIONER_LUMPED = 1,
+} NsddPreconditioner;
+
+/**
  * Status code returned by every fallible function of the C ABI.
  */
 typedef enum NsddStatus {
@@ -407,6 +423,17 @@ void nsdd_options_destroy(struct NsddOptions *options);
  * `options` must be a live options handle.
  */
 enum NsddStatus nsdd_options_set_method(struct NsddOptions *options, uint32_t method);
+
+/**
+ * Sets the preconditioner of the `cg` method: one of `NsddPreconditioner`
+ * (0 dirichlet, 1 lumped); any other value is INVALID_ARGUMENT. Ignored
+ * by the other methods.
+ *
+ * # Safety
+ * `options` must be a live options handle.
+ */
+enum NsddStatus nsdd_options_set_preconditioner(struct NsddOptions *options,
+                                                uint32_t preconditioner);
 
 /**
  * Sets the number of subdomains of the automatic partition (>= 1; ignored

@@ -106,6 +106,7 @@ pub fn dd_profile(scene: &Scene, subdomains: usize, iterations: usize) -> Result
             max_iterations: 1,
             search_direction: SearchDirection::Auto,
             krylov: false,
+            preconditioner: Default::default(),
         },
     )?;
     let setup_s = t.elapsed().as_secs_f64();

@@ -22,7 +22,7 @@ use crate::error::Error;
 use crate::factor::lower_csc;
 use crate::partition::Partition;
 use crate::result::SolveResult;
-use crate::scene::{ElementKind, Method, Nodes, Scene, SearchDirection, SolverSettings};
+use crate::scene::{ElementKind, Method, Nodes, Preconditioner, Scene, SearchDirection, SolverSettings};
 use crate::solve::{solve, SolveOptions};
 use crate::subdomain::SubdomainOperator;
 use faer::Mat;
@@ -79,6 +79,18 @@ pub enum NsddMethod {
     /// Conjugate gradient on the interface problem with the same coarse
     /// step (linear case only).
     Cg = 3,
+}
+
+/// Preconditioner of the interface CG (values for
+/// `nsdd_options_set_preconditioner`).
+#[repr(C)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum NsddPreconditioner {
+    /// Schur complement of each subdomain on its interface (default): one
+    /// interior solve per subdomain and iteration, fewer iterations.
+    Dirichlet = 0,
+    /// The subdomain stiffness on its interface dofs; no extra factorization.
+    Lumped = 1,
 }
 
 /// Element kind (values of the `kind` array of `nsdd_scene_set_elements`).
@@ -742,6 +754,7 @@ fn default_options() -> SolveOptions {
         tolerance: s.tolerance,
         max_iterations: s.max_iterations,
         search_direction: s.search_direction,
+        preconditioner: s.preconditioner,
     }
 }
 
@@ -804,6 +817,29 @@ pub unsafe extern "C" fn nsdd_options_set_method(options: *mut NsddOptions, meth
             _ => {
                 return Err(invalid(format!(
                     "method = {method}: expected 0 (direct), 1 (monolevel), 2 (multilevel) or 3 (cg)"
+                )))
+            }
+        };
+        Ok(())
+    })
+}
+
+/// Sets the preconditioner of the `cg` method: one of `NsddPreconditioner`
+/// (0 dirichlet, 1 lumped); any other value is INVALID_ARGUMENT. Ignored
+/// by the other methods.
+///
+/// # Safety
+/// `options` must be a live options handle.
+#[unsafe(no_mangle)]
+pub unsafe extern "C" fn nsdd_options_set_preconditioner(options: *mut NsddOptions, preconditioner: u32) -> NsddStatus {
+    ffi_guard(|| {
+        let o = unsafe { handle_mut(options, "options")? };
+        o.opts.preconditioner = match preconditioner {
+            0 => Preconditioner::Dirichlet,
+            1 => Preconditioner::Lumped,
+            _ => {
+                return Err(invalid(format!(
+                    "preconditioner = {preconditioner}: expected 0 (dirichlet) or 1 (lumped)"
                 )))
             }
         };
@@ -1576,6 +1612,7 @@ fn alg_setup(h: &mut NsddAlgebraic, opts: &SolveOptions) -> FfiResult {
             max_iterations: opts.max_iterations,
             search_direction: opts.search_direction,
             krylov: opts.method == Method::Cg,
+            preconditioner: opts.preconditioner,
         },
     )?;
     h.setup = Some(AlgSetup {

@@ -21,8 +21,8 @@ use crate::error::{Error, Result};
 use crate::kernels;
 use crate::model::{Model, FIXED};
 use crate::result::HistoryEntry;
-use crate::scene::SearchDirection;
-use crate::subdomain::SubdomainOperator;
+use crate::scene::{Preconditioner, SearchDirection};
+use crate::subdomain::{InteriorProblem, SubdomainOperator};
 use faer::Mat;
 use rayon::prelude::*;
 use std::time::Instant;
@@ -38,6 +38,8 @@ pub struct DdOptions {
     /// Conjugate gradient on the interface problem instead of the seed's
     /// stationary iteration (linear case only; needs the coarse step).
     pub krylov: bool,
+    /// Preconditioner of the CG (ignored by the stationary iteration).
+    pub preconditioner: Preconditioner,
 }
 
 /// Fraction of the stability limit `2 / λ_max` used by the automatic `d`.
@@ -264,6 +266,8 @@ struct SubState {
     /// Interface CG: the displacement of the current forces (empty unless
     /// the solver uses CG).
     cg_v: Vec<f64>,
+    /// Factored interior problem for the Dirichlet preconditioner of CG.
+    interior: Option<InteriorProblem>,
 }
 
 struct IfaceState {
@@ -475,7 +479,7 @@ impl DdSolver {
                 dlambda2: 0.0,
                 dforce2: 0.0,
                 cg_v: Vec::new(),
-
+                interior: None,
                 op,
             });
             alpha_off += r;
@@ -599,6 +603,14 @@ impl DdSolver {
             }
             for st in solver.subs.iter_mut() {
                 st.cg_v = vec![0.0; st.v.len()];
+            }
+            if solver.opts.preconditioner == Preconditioner::Dirichlet {
+                let t = Instant::now();
+                solver.subs.par_iter_mut().try_for_each(|st| -> Result<()> {
+                    st.interior = Some(InteriorProblem::new(&st.op, &st.iface_dofs)?);
+                    Ok(())
+                })?;
+                solver.stats.factor_s += t.elapsed().as_secs_f64();
             }
         }
         let t_d = Instant::now();
@@ -1048,9 +1060,10 @@ impl DdSolver {
     /// after the coarse step, the operator `A F = −J V_hom(F)` satisfies
     /// `⟨F₂, A F₁⟩ = S₂ᵀ 𝔽 S₁` (`𝔽 = Σ B K⁺ Bᵀ`, `Gᵀ S = 0`), so it is
     /// symmetric positive semi-definite and CG applies; the preconditioner
-    /// is the lumped `Σ_E B_E diag(K_E) B_Eᵀ` of the stationary iteration.
-    /// One homogeneous global step (one solve per subdomain and one coarse
-    /// solve) per iteration; the displacement is updated by linearity, so
+    /// is `Σ_E B_E S_E B_Eᵀ` (Dirichlet) or `Σ_E B_E K_E B_Eᵀ` (lumped), see
+    /// [`Self::precondition`]. One homogeneous global step (one solve per
+    /// subdomain and one coarse solve) per iteration, plus one interior
+    /// solve per subdomain with the Dirichlet choice; the displacement is updated by linearity, so
     /// no solve is added at the end. No allocation per iteration.
     fn iterate_cg(&mut self, warm: bool, mut progress: Option<&mut dyn FnMut(usize, f64)>) -> Result<DdOutcome> {
         let t0 = Instant::now();
@@ -1257,9 +1270,11 @@ impl DdSolver {
         }
     }
 
-    /// `z = (I − P Pᵀ) Σ_E B_E K_E B_Eᵀ r`: the lumped preconditioner (the
-    /// subdomain stiffness on its interface dofs), then the macro part
-    /// removed. `range(P)` is in the null space of the CG operator (the
+    /// `z = (I − P Pᵀ) Σ_E B_E S_E B_Eᵀ r` with `S_E` the Schur complement
+    /// of the subdomain on its interface (Dirichlet: the interface force
+    /// that holds the displacement `Bᵀr` with the interior free), or `K_E`
+    /// itself on the interface dofs (lumped: interior held at zero), then
+    /// the macro part removed. `range(P)` is in the null space of the CG operator (the
     /// coarse step absorbs it); leaving it in `z` lets round-off grow there
     /// and break the iteration on long runs.
     fn precondition(&mut self) {
@@ -1270,8 +1285,12 @@ impl DdSolver {
                 let (idx, coef) = if is_lo { (&it.lo_idx, 1.0) } else { (&it.hi_idx, -1.0) };
                 kernels::scatter_add(&mut s.g, idx, &it.cg_r, coef);
             }
-            // s.r is free between global steps: K_E B_Eᵀ r goes there.
-            s.op.apply(&s.g, &mut s.r);
+            // s.r is free between global steps: K_E B_Eᵀ r (lumped) or
+            // S_E B_Eᵀ r (Dirichlet) goes there.
+            match s.interior.as_mut() {
+                Some(ip) => ip.apply_schur(&s.op, &mut s.g, &mut s.r),
+                None => s.op.apply(&s.g, &mut s.r),
+            }
             for &l in &s.iface_dofs {
                 s.g[l as usize] = 0.0;
             }

@@ -16,7 +16,7 @@ use nsdd::error::{Error, Result};
 use nsdd::generate;
 use nsdd::model::Model;
 use nsdd::report::{self, AccuracyOptions, Event, ScalingOptions};
-use nsdd::scene::{Method, Scene, SearchDirection};
+use nsdd::scene::{Method, Preconditioner, Scene, SearchDirection};
 use nsdd::solve::{solve_with_progress, SolveOptions};
 use nsdd::vtk;
 
@@ -72,6 +72,10 @@ impl From<MethodArg> for Method {
     }
 }
 
+fn parse_preconditioner(s: &str) -> std::result::Result<Preconditioner, String> {
+    s.parse()
+}
+
 fn parse_d(s: &str) -> std::result::Result<SearchDirection, String> {
     let d: SearchDirection = s.parse()?;
     match d {
@@ -99,6 +103,9 @@ struct SolveArgs {
     /// Search direction d of the local stage: a positive number or "auto"
     #[arg(long, value_name = "D|auto", value_parser = parse_d)]
     search_direction: Option<SearchDirection>,
+    /// Preconditioner of cg: dirichlet (default: interior solves, fewer iterations) or lumped
+    #[arg(long, value_name = "P", value_parser = parse_preconditioner)]
+    preconditioner: Option<Preconditioner>,
     /// Write the result JSON here (only after a successful solve)
     #[arg(long, value_name = "FILE")]
     out: Option<PathBuf>,
@@ -408,6 +415,9 @@ fn cmd_solve(a: SolveArgs) -> Result<i32> {
     }
     if let Some(d) = a.search_direction {
         opts.search_direction = d;
+    }
+    if let Some(p) = a.preconditioner {
+        opts.preconditioner = p;
     }
 
     let mut bar = if opts.method == Method::Direct {

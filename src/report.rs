@@ -480,6 +480,7 @@ fn method_options(
         tolerance,
         max_iterations,
         search_direction: d,
+        preconditioner: Default::default(),
     }
 }
 

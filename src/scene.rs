@@ -118,6 +118,40 @@ impl std::str::FromStr for Method {
     }
 }
 
+/// Preconditioner of the interface CG (`method = "cg"`). An nsdd addition.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default, Hash)]
+#[serde(rename_all = "lowercase")]
+pub enum Preconditioner {
+    /// `Σ_E B_E S_E B_Eᵀ` with the Schur complement `S_E` of each
+    /// subdomain on its interface: one more (interior) solve per subdomain
+    /// and iteration and a second factorization, for 2–4× fewer iterations.
+    #[default]
+    Dirichlet,
+    /// `Σ_E B_E K_E B_Eᵀ`: the subdomain stiffness on its interface dofs
+    /// (the paper's lumped choice); no extra factorization.
+    Lumped,
+}
+
+impl Preconditioner {
+    pub fn name(&self) -> &'static str {
+        match self {
+            Preconditioner::Dirichlet => "dirichlet",
+            Preconditioner::Lumped => "lumped",
+        }
+    }
+}
+
+impl std::str::FromStr for Preconditioner {
+    type Err = String;
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        match s {
+            "dirichlet" => Ok(Preconditioner::Dirichlet),
+            "lumped" => Ok(Preconditioner::Lumped),
+            _ => Err(format!("unknown preconditioner '{s}' (expected dirichlet or lumped)")),
+        }
+    }
+}
+
 /// The `d` of the local stage: `"auto"` or a positive number.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub enum SearchDirection {
@@ -183,6 +217,9 @@ pub struct SolverSettings {
     pub max_iterations: usize,
     #[serde(default)]
     pub search_direction: SearchDirection,
+    /// Preconditioner of `cg` (ignored by the other methods).
+    #[serde(default)]
+    pub preconditioner: Preconditioner,
 }
 
 fn default_subdomains() -> usize {
@@ -203,6 +240,7 @@ impl Default for SolverSettings {
             tolerance: default_tolerance(),
             max_iterations: default_max_iterations(),
             search_direction: SearchDirection::Auto,
+            preconditioner: Preconditioner::default(),
         }
     }
 }

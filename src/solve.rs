@@ -35,7 +35,7 @@ use crate::error::Result;
 use crate::model::Model;
 use crate::partition::Partition;
 use crate::result::{CaseResult, HistoryEntry, SolveResult, Timings};
-use crate::scene::{Method, Scene, SearchDirection};
+use crate::scene::{Method, Preconditioner, Scene, SearchDirection};
 use std::time::Instant;
 
 /// Solver settings (the scene's `[solver]`, possibly overridden).
@@ -46,6 +46,8 @@ pub struct SolveOptions {
     pub tolerance: f64,
     pub max_iterations: usize,
     pub search_direction: SearchDirection,
+    /// Preconditioner of `cg` (ignored by the other methods).
+    pub preconditioner: Preconditioner,
 }
 
 impl SolveOptions {
@@ -68,6 +70,7 @@ impl SolveOptions {
             tolerance: s.tolerance,
             max_iterations: s.max_iterations,
             search_direction: s.search_direction,
+            preconditioner: s.preconditioner,
         }
     }
 }
@@ -103,6 +106,7 @@ pub fn prepare(model: &Model, scene: &Scene, opts: &SolveOptions) -> Result<Prep
                 DdOptions {
                     coarse: opts.method != Method::Monolevel,
                     krylov: opts.method == Method::Cg,
+                    preconditioner: opts.preconditioner,
                     tolerance: opts.tolerance,
                     max_iterations: opts.max_iterations,
                     search_direction: opts.search_direction,

@@ -340,6 +340,112 @@ fn decouple(lower: &SparseColMat<usize, f64>, fixing: &[usize], scale: f64) -> S
     m
 }
 
+/// The interior (Dirichlet) problem of a subdomain: `K_ii` over the dofs
+/// off its interface, factored once, to apply the Schur complement
+/// `S_E = K_bb − K_bi K_ii⁻¹ K_ib` (the Dirichlet preconditioner of the
+/// interface CG). `K_ii` is regular whenever the structure is: the
+/// interface holds every kernel mode of the subdomain (else `G` would not
+/// have full rank), so interior mechanisms are reported by name.
+pub struct InteriorProblem {
+    /// Local numbers of the interior dofs, increasing.
+    interior: Vec<u32>,
+    /// `None` when every dof is on the interface (`S_E = K_E`).
+    chol: Option<SparseCholesky>,
+    rhs: Vec<f64>,
+}
+
+impl std::fmt::Debug for InteriorProblem {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("InteriorProblem")
+            .field("interior", &self.interior.len())
+            .field("nnz_l", &self.nnz_l())
+            .finish()
+    }
+}
+
+impl InteriorProblem {
+    /// Factors `K_ii` of `op` with the interface dofs `boundary` (local,
+    /// increasing) removed.
+    pub fn new(op: &SubdomainOperator, boundary: &[u32]) -> Result<InteriorProblem> {
+        let n = op.n();
+        let mut local = vec![u32::MAX; n];
+        let mut interior = Vec::with_capacity(n.saturating_sub(boundary.len()));
+        let mut is_boundary = vec![false; n];
+        for &b in boundary {
+            is_boundary[b as usize] = true;
+        }
+        for (l, slot) in local.iter_mut().enumerate() {
+            if !is_boundary[l] {
+                *slot = interior.len() as u32;
+                interior.push(l as u32);
+            }
+        }
+        let a = op.stiffness.as_ref();
+        let mut triplets = Vec::new();
+        for j in 0..n {
+            if is_boundary[j] {
+                continue;
+            }
+            for (i, &v) in a.row_idx_of_col(j).zip(a.val_of_col(j)) {
+                if !is_boundary[i] {
+                    triplets.push((local[i] as usize, local[j] as usize, v));
+                }
+            }
+        }
+        let ni = interior.len();
+        if ni == 0 {
+            return Ok(InteriorProblem {
+                interior,
+                chol: None,
+                rhs: Vec::new(),
+            });
+        }
+        let lower = lower_csc(ni, &triplets).map_err(|e| Error::Numerical(format!("subdomain {}: {e:?}", op.id)))?;
+        let chol = SparseCholesky::factor_checked(&lower, 1, SUBDOMAIN_PIVOT_RATIO).map_err(|e| match e {
+            FactorError::Pivot { dof, .. } => Error::IndefiniteSubdomain {
+                subdomain: op.id,
+                message: format!(
+                    "its interior is singular with the interface held (local dof {}): a mechanism inside the subdomain",
+                    interior[dof]
+                ),
+            },
+            FactorError::Internal(m) => Error::Numerical(format!("subdomain {}: {m}", op.id)),
+        })?;
+        Ok(InteriorProblem {
+            interior,
+            chol: Some(chol),
+            rhs: vec![0.0; ni],
+        })
+    }
+
+    /// `y = K [x_b; u_i]` with `u_i = −K_ii⁻¹ K_ib x_b` the harmonic
+    /// extension: `y_b = S_E x_b`, `y_i = 0` up to round-off. `x` must be
+    /// zero off the interface on entry and is again on return. No
+    /// allocation.
+    pub fn apply_schur(&mut self, op: &SubdomainOperator, x: &mut [f64], y: &mut [f64]) {
+        op.apply(x, y);
+        let Some(chol) = self.chol.as_mut() else {
+            return;
+        };
+        for (r, &l) in self.rhs.iter_mut().zip(&self.interior) {
+            *r = -y[l as usize];
+        }
+        chol.solve_in_place(&mut self.rhs);
+        for (&u, &l) in self.rhs.iter().zip(&self.interior) {
+            x[l as usize] = u;
+        }
+        op.apply(x, y);
+        for &l in &self.interior {
+            x[l as usize] = 0.0;
+        }
+    }
+
+    /// Stored entries of the interior factor.
+    pub fn nnz_l(&self) -> usize {
+        self.chol.as_ref().map_or(0, |c| c.nnz_l())
+    }
+}
+
 /// Orthonormal basis of the column span of `a`, dropping directions whose
 /// singular value is below `rtol` times the largest (rank revealing).
 pub fn orthonormal_columns(a: &Mat<f64>, rtol: f64) -> Mat<f64> {

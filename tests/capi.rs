@@ -11,7 +11,7 @@
 use nsdd::capi::*;
 use nsdd::dd::{DdOptions, DdProblem, DdSolver, NO_DOF};
 use nsdd::model::Model;
-use nsdd::scene::{Method, Scene};
+use nsdd::scene::{Method, Preconditioner, Scene};
 use nsdd::solve::{decompose, solve, SolveOptions};
 use std::ffi::{c_char, CStr, CString};
 use std::path::PathBuf;
@@ -760,6 +760,38 @@ fn scene_level_cg_matches_rust_api_bit_for_bit() {
         assert_eq!(bits(&u), bits(&ru));
         nsdd_result_destroy(r);
         nsdd_scene_destroy(s);
+        // Both preconditioners on a grid where they take different paths.
+        let big = nsdd::generate::grid(&nsdd::generate::GridParams {
+            nx: 12,
+            ny: 12,
+            unilateral: false,
+            ..Default::default()
+        });
+        let text = cstr(&big.to_toml_string().unwrap());
+        ok(nsdd_scene_from_str(text.as_ptr(), false, &mut s));
+        for (p, code) in [(Preconditioner::Dirichlet, 0), (Preconditioner::Lumped, 1)] {
+            opts.preconditioner = p;
+            let want = solve(&big, &opts).unwrap();
+            ok(nsdd_options_set_preconditioner(o, code));
+            let mut r = null_mut();
+            ok(nsdd_solve(s, o, &mut r));
+            let mut nn = 0;
+            ok(nsdd_result_num_nodes(r, &mut nn));
+            let mut u = vec![0.0; 3 * nn];
+            ok(nsdd_result_displacements(r, u.as_mut_ptr(), u.len()));
+            let wu: Vec<f64> = want.displacements.iter().flatten().copied().collect();
+            assert_eq!(bits(&u), bits(&wu), "{p:?}");
+            let mut it = 0;
+            ok(nsdd_result_iterations(r, &mut it));
+            assert_eq!(it, want.iterations, "{p:?}");
+            nsdd_result_destroy(r);
+        }
+        expect_err(
+            nsdd_options_set_preconditioner(o, 2),
+            NsddStatus::InvalidArgument,
+            "preconditioner",
+        );
+        nsdd_scene_destroy(s);
         let grid = cstr(root().join("scenes/grid-8x8.toml").to_str().unwrap());
         ok(nsdd_scene_from_file(grid.as_ptr(), &mut s));
         let mut r = null_mut();
@@ -862,6 +894,7 @@ fn dd_options(scene_file: &str) -> DdOptions {
         max_iterations: scene.solver.max_iterations,
         search_direction: scene.solver.search_direction,
         krylov: false,
+        preconditioner: Default::default(),
     }
 }
 

@@ -498,3 +498,52 @@ fn scaling_study_writes_csv_and_svg() {
         .all(|r| !r[6].is_empty() || r.len() > 12 && !r[12].is_empty()));
     assert_svg(&d.join("scaling.svg"));
 }
+
+/// `--preconditioner` reaches the CG: both choices match the direct
+/// solution, along different iterations; a bad value is exit 2.
+#[test]
+fn cg_preconditioner_flag() {
+    let d = tmp("cg-precond");
+    let scene = d.join("g.toml");
+    ok(&nsdd(&[
+        "gen",
+        "grid",
+        "nx=12",
+        "ny=12",
+        "unilateral=false",
+        "--out",
+        s(&scene),
+    ]));
+    let direct = d.join("direct.json");
+    ok(&nsdd(&["solve", s(&scene), "--method", "direct", "--out", s(&direct)]));
+    let rd = read_json(&direct);
+    let mut iterations = Vec::new();
+    for p in ["dirichlet", "lumped"] {
+        let out_p = d.join(format!("{p}.json"));
+        ok(&nsdd(&[
+            "solve",
+            s(&scene),
+            "--method",
+            "cg",
+            "--subdomains",
+            "4",
+            "--tolerance",
+            "1e-9",
+            "--preconditioner",
+            p,
+            "--out",
+            s(&out_p),
+        ]));
+        let r = read_json(&out_p);
+        assert_matches(&r, &rd, 1e-7, p);
+        iterations.push(r["iterations"].as_u64().unwrap());
+    }
+    assert_ne!(iterations[0], iterations[1]);
+    let out = nsdd(&["solve", s(&scene), "--method", "cg", "--preconditioner", "jacobi"]);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(
+        text(&out.stderr).contains("dirichlet or lumped"),
+        "{}",
+        text(&out.stderr)
+    );
+}

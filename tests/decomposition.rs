@@ -6,7 +6,7 @@
 mod common;
 
 use common::*;
-use faer::linalg::solvers::DenseSolveCore;
+use faer::linalg::solvers::{DenseSolveCore, Solve};
 use faer::Mat;
 use nsdd::dd::{DdOptions, DdSolver};
 use nsdd::decomposition::Decomposition;
@@ -36,6 +36,7 @@ fn multilevel(model: &Model, dec: &Decomposition) -> DdSolver {
             max_iterations: 1000,
             search_direction: SearchDirection::Auto,
             krylov: false,
+            preconditioner: Default::default(),
         },
     )
     .unwrap()
@@ -421,5 +422,50 @@ fn weak_node_repair_shrinks_subdomain_kernels() {
         let raw = kernel_total(Partition::coordinate_bisection(&model, parts).unwrap());
         let repaired = kernel_total(Partition::bisection(&model, parts).unwrap());
         assert!(2 * repaired <= raw, "{parts} parts: kernel {raw} -> {repaired}");
+    }
+}
+
+/// The interior problem of the Dirichlet preconditioner: `apply_schur`
+/// equals the dense Schur complement `K_bb − K_bi K_ii⁻¹ K_ib` on the
+/// interface and leaves no force inside, on regular and floating parts.
+#[test]
+fn interior_problem_applies_the_dense_schur_complement() {
+    use nsdd::subdomain::InteriorProblem;
+    let model = grid_model(6);
+    let dec = Decomposition::new(&model, Partition::bisection(&model, 4).unwrap());
+    let dd = multilevel(&model, &dec);
+    for s in 0..dd.n_subdomains() {
+        let op = dd.operator(s);
+        let k = dense_k(op);
+        let n = k.nrows();
+        let mult = &dec.subdomains[s].multiplicity;
+        let boundary: Vec<u32> = (0..n as u32).filter(|&l| mult[l as usize] > 1).collect();
+        let interior: Vec<usize> = (0..n).filter(|&l| mult[l] == 1).collect();
+        assert!(!boundary.is_empty() && !interior.is_empty());
+        let b: Vec<usize> = boundary.iter().map(|&l| l as usize).collect();
+        let pick = |rows: &[usize], cols: &[usize]| Mat::from_fn(rows.len(), cols.len(), |i, j| k[(rows[i], cols[j])]);
+        let (kbb, kbi, kii) = (pick(&b, &b), pick(&b, &interior), pick(&interior, &interior));
+        let schur = &kbb - &kbi * kii.llt(faer::Side::Lower).unwrap().solve(kbi.transpose());
+        let mut ip = InteriorProblem::new(op, &boundary).unwrap();
+        let mut x = vec![0.0; n];
+        let mut seed = 11 + s as u64;
+        for &l in &b {
+            x[l] = lcg(&mut seed);
+        }
+        let xb = Mat::from_fn(b.len(), 1, |i, _| x[b[i]]);
+        let want = &schur * &xb;
+        let mut y = vec![0.0; n];
+        ip.apply_schur(op, &mut x, &mut y);
+        let scale = want.norm_l2();
+        for (i, &l) in b.iter().enumerate() {
+            assert!(
+                (y[l] - want[(i, 0)]).abs() < 1e-10 * scale,
+                "subdomain {s}: S x differs at {l}"
+            );
+        }
+        for &l in &interior {
+            assert!(y[l].abs() < 1e-10 * scale, "subdomain {s}: force {} left inside", y[l]);
+            assert_eq!(x[l], 0.0, "x must be zero off the interface again");
+        }
     }
 }

@@ -4,7 +4,7 @@
 use nsdd::dd::{DdOptions, DdSolver};
 use nsdd::generate::{grid, GridParams};
 use nsdd::model::Model;
-use nsdd::scene::SearchDirection;
+use nsdd::scene::{Preconditioner, SearchDirection};
 use nsdd::solve::decompose;
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -32,7 +32,12 @@ static GLOBAL: Counting = Counting;
 #[test]
 fn extra_iterations_allocate_nothing() {
     // The stationary iteration, linear and nonsmooth, and the interface CG.
-    for (unilateral, krylov) in [(false, false), (true, false), (false, true)] {
+    for (unilateral, krylov, preconditioner) in [
+        (false, false, Preconditioner::Dirichlet),
+        (true, false, Preconditioner::Dirichlet),
+        (false, true, Preconditioner::Dirichlet),
+        (false, true, Preconditioner::Lumped),
+    ] {
         let scene = grid(&GridParams {
             nx: 8,
             ny: 8,
@@ -48,6 +53,7 @@ fn extra_iterations_allocate_nothing() {
             max_iterations: 1,
             search_direction: SearchDirection::Auto,
             krylov,
+            preconditioner,
         };
         let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();
         pool.install(|| {
@@ -71,7 +77,7 @@ fn extra_iterations_allocate_nothing() {
             assert_eq!(
                 many,
                 one,
-                "unilateral {unilateral}, krylov {krylov}: 40 extra iterations made {} allocations",
+                "unilateral {unilateral}, krylov {krylov}, {preconditioner:?}: 40 extra iterations made {} allocations",
                 many as i64 - one as i64
             );
         });

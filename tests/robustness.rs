@@ -732,6 +732,7 @@ fn floating_subdomains_match_direct() {
             max_iterations: 10,
             search_direction: SearchDirection::Auto,
             krylov: false,
+            preconditioner: Default::default(),
         },
     )
     .unwrap();
@@ -813,6 +814,7 @@ fn resolving_reuses_factorizations_bit_identically() {
         max_iterations: 100_000,
         search_direction: SearchDirection::Auto,
         krylov: false,
+        preconditioner: Default::default(),
     };
     let mut dd = DdSolver::new(&model, &dec, o.clone()).unwrap();
     let f = model.load_cases[0].clone();
@@ -1306,6 +1308,7 @@ fn solve_options_given_in_rust_are_checked_like_the_scene() {
             tolerance,
             max_iterations,
             search_direction,
+            preconditioner: Default::default(),
         };
         match solve(&scene, &o) {
             Err(Error::InvalidInput { field, .. }) => assert_eq!(field, name),

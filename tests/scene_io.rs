@@ -140,6 +140,7 @@ fn builder_scene() -> Scene {
         tolerance: 1e-9,
         max_iterations: 77,
         search_direction: SearchDirection::Value(12.5),
+        preconditioner: nsdd::scene::Preconditioner::Lumped,
     });
     b.build_validated().unwrap()
 }

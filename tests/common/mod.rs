@@ -26,6 +26,7 @@ pub fn opts(method: Method, subdomains: usize, tol: f64) -> SolveOptions {
         tolerance: tol,
         max_iterations: 200_000,
         search_direction: SearchDirection::Auto,
+        preconditioner: Default::default(),
     }
 }
 
@@ -33,9 +34,14 @@ pub fn opts(method: Method, subdomains: usize, tol: f64) -> SolveOptions {
 /// criterion: relative errors at most 10× the tolerance, same slack set.
 /// Returns the iteration count.
 pub fn assert_matches_direct(scene: &Scene, method: Method, subdomains: usize, tol: f64) -> usize {
+    assert_matches_direct_with(scene, &opts(method, subdomains, tol))
+}
+
+/// [`assert_matches_direct`] with every solver option given.
+pub fn assert_matches_direct_with(scene: &Scene, o: &SolveOptions) -> usize {
+    let (subdomains, tol) = (o.subdomains, o.tolerance);
     let direct = solve(scene, &opts(Method::Direct, 1, tol)).expect("direct solve");
-    let dd = solve(scene, &opts(method, subdomains, tol))
-        .unwrap_or_else(|e| panic!("{} with {subdomains} subdomains: {e}", scene.scene.name));
+    let dd = solve(scene, o).unwrap_or_else(|e| panic!("{} with {subdomains} subdomains: {e}", scene.scene.name));
     assert!(
         dd.converged,
         "{} with {subdomains} subdomains: not converged after {}",
