@@ -16,7 +16,7 @@
 //! round-off.
 
 use crate::error::{Error, Result};
-use crate::factor::{lower_csc, lower_diagonal, sym_matvec, SparseCholesky};
+use crate::factor::{lower_csc, lower_diagonal, sym_matvec, FactorError, SparseCholesky};
 use crate::subdomain::orthonormal_columns;
 use faer::linalg::solvers::DenseSolveCore;
 use faer::sparse::SparseColMat;
@@ -200,10 +200,12 @@ const REFINEMENT_TARGET: f64 = 1e-14;
 /// (the diagonal of `L` spans 7 decades on a 2.4e5-dof plate with 64
 /// subdomains) and leave refinement stalled at 10% residual.
 const MACRO_REGULARIZATION: f64 = 1e-10;
-/// Floor of the diagonal entries the regularisation is relative to, as a
-/// fraction of the largest: keeps the redundant (null) directions at cross
-/// points clear of round-off when their diagonal entries are tiny.
-const REGULARIZATION_FLOOR: f64 = 1e-8;
+/// Floors of the diagonal entries the regularisation is relative to, as
+/// fractions of the largest, tried in turn: they keep the redundant (null)
+/// directions at cross points clear of round-off when their diagonal
+/// entries are tiny. The 1e6-dof plate with 16 subdomains needs more than
+/// 1e-8; the last floor is a uniform shift, refinement then does the rest.
+const REGULARIZATION_FLOORS: &[f64] = &[1e-8, 1e-6, 1e-4, 1e-2, 1.0];
 /// Columns per batched solve when forming `L_γ⁻¹ G`.
 const SCHUR_BATCH: usize = 32;
 
@@ -293,17 +295,36 @@ impl CoarseProblem {
                 }
             }
         }
-        aug.extend(
-            ldiag
-                .iter()
-                .enumerate()
-                .map(|(i, &d)| (i, i, MACRO_REGULARIZATION * d.max(REGULARIZATION_FLOOR * lscale))),
-        );
-        let aug = lower_csc(nf, &aug).map_err(|e| Error::Numerical(format!("coarse operator: {e:?}")))?;
-        let mut factor =
-            SparseCholesky::factor_checked(&aug, SCHUR_BATCH, 0.01 * MACRO_REGULARIZATION * REGULARIZATION_FLOOR)
-                .map_err(|e| Error::Numerical(format!("the coarse problem could not be factored: {e:?}")))?;
+        // Smallest floor first (most accurate); a larger one when round-off
+        // on the redundant directions still gives a non-positive pivot.
+        let mut factor = None;
+        for &floor in REGULARIZATION_FLOORS {
+            let mut shifted = aug.clone();
+            shifted.extend(
+                ldiag
+                    .iter()
+                    .enumerate()
+                    .map(|(i, &d)| (i, i, MACRO_REGULARIZATION * d.max(floor * lscale))),
+            );
+            let lower = lower_csc(nf, &shifted).map_err(|e| Error::Numerical(format!("coarse operator: {e:?}")))?;
+            drop(shifted);
+            match SparseCholesky::factor_checked(&lower, SCHUR_BATCH, 0.01 * MACRO_REGULARIZATION * floor) {
+                Ok(f) => {
+                    factor = Some(f);
+                    break;
+                }
+                Err(FactorError::Pivot { .. }) => continue,
+                Err(e) => {
+                    return Err(Error::Numerical(format!(
+                        "the coarse problem could not be factored: {e:?}"
+                    )))
+                }
+            }
+        }
         drop(aug);
+        let mut factor = factor.ok_or_else(|| {
+            Error::Numerical("the coarse problem could not be factored even with the largest regularisation".into())
+        })?;
 
         // S = Gᵀ L_γ⁻¹ G, in batches of columns.
         let mut s = Mat::<f64>::zeros(na, na);
