@@ -734,6 +734,18 @@ fn scene_results_match_rust_api_bit_for_bit() {
 /// The interface CG through the C ABI (method 3) on a linear scene: the same
 /// bits as the Rust API, and a named refusal on a scene with unilateral
 /// cables.
+/// Solves `s` with `o` through the C ABI; returns the result handle (for
+/// the caller to query and destroy) and its displacements.
+unsafe fn solve_displacements(s: *mut NsddScene, o: *mut NsddOptions) -> (*mut NsddResult, Vec<f64>) {
+    let mut r = null_mut();
+    ok(nsdd_solve(s, o, &mut r));
+    let mut nn = 0;
+    ok(nsdd_result_num_nodes(r, &mut nn));
+    let mut u = vec![0.0; 3 * nn];
+    ok(nsdd_result_displacements(r, u.as_mut_ptr(), u.len()));
+    (r, u)
+}
+
 #[test]
 fn scene_level_cg_matches_rust_api_bit_for_bit() {
     let path = root().join("scenes/grid-4x4-linear.toml");
@@ -750,12 +762,7 @@ fn scene_level_cg_matches_rust_api_bit_for_bit() {
         let o = nsdd_options_new();
         ok(nsdd_options_set_method(o, NsddMethod::Cg as u32));
         ok(nsdd_options_set_subdomains(o, 4));
-        let mut r = null_mut();
-        ok(nsdd_solve(s, o, &mut r));
-        let mut nn = 0;
-        ok(nsdd_result_num_nodes(r, &mut nn));
-        let mut u = vec![0.0; 3 * nn];
-        ok(nsdd_result_displacements(r, u.as_mut_ptr(), u.len()));
+        let (r, u) = solve_displacements(s, o);
         let ru: Vec<f64> = rust.displacements.iter().flatten().copied().collect();
         assert_eq!(bits(&u), bits(&ru));
         nsdd_result_destroy(r);
@@ -773,12 +780,7 @@ fn scene_level_cg_matches_rust_api_bit_for_bit() {
             opts.preconditioner = p;
             let want = solve(&big, &opts).unwrap();
             ok(nsdd_options_set_preconditioner(o, code));
-            let mut r = null_mut();
-            ok(nsdd_solve(s, o, &mut r));
-            let mut nn = 0;
-            ok(nsdd_result_num_nodes(r, &mut nn));
-            let mut u = vec![0.0; 3 * nn];
-            ok(nsdd_result_displacements(r, u.as_mut_ptr(), u.len()));
+            let (r, u) = solve_displacements(s, o);
             let wu: Vec<f64> = want.displacements.iter().flatten().copied().collect();
             assert_eq!(bits(&u), bits(&wu), "{p:?}");
             let mut it = 0;
