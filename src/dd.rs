@@ -18,7 +18,7 @@
 use crate::coarse::{CoarseContribution, CoarseProblem, MacroBasis};
 use crate::decomposition::Decomposition;
 use crate::error::{Error, Result};
-use crate::kernels;
+use crate::kernels::{self, Run, Side};
 use crate::model::{Model, FIXED};
 use crate::result::HistoryEntry;
 use crate::scene::{Preconditioner, SearchDirection};
@@ -275,6 +275,9 @@ struct IfaceState {
     hi: usize,
     lo_idx: Vec<u32>,
     hi_idx: Vec<u32>,
+    /// `lo_idx`, `hi_idx` as runs of consecutive local dofs: what the
+    /// per-iteration kernels use (vectorised slice loops).
+    runs: Vec<Run>,
     force: Vec<f64>,
     jump: Vec<f64>,
     /// `P_Γ` (`entries × m_Γ`), empty without coarse space.
@@ -402,6 +405,10 @@ impl DdSolver {
                 hi: it.hi,
                 lo_idx: dec.entry_lo_local[it.start..it.end].to_vec(),
                 hi_idx: dec.entry_hi_local[it.start..it.end].to_vec(),
+                runs: kernels::runs(
+                    &dec.entry_lo_local[it.start..it.end],
+                    &dec.entry_hi_local[it.start..it.end],
+                ),
                 force: vec![0.0; it.len()],
                 jump: vec![0.0; it.len()],
                 p: Mat::zeros(0, 0),
@@ -963,8 +970,8 @@ impl DdSolver {
             }
             for &(i, is_lo) in &s.ifaces {
                 let it = &ifaces[i];
-                let (idx, coef) = if is_lo { (&it.lo_idx, -1.0) } else { (&it.hi_idx, 1.0) };
-                kernels::scatter_add(&mut s.r, idx, &it.force, coef);
+                let (side, coef) = if is_lo { (Side::Lo, -1.0) } else { (Side::Hi, 1.0) };
+                kernels::scatter_add_runs(&mut s.r, side, &it.runs, &it.force, coef);
             }
             if with_cables {
                 for (c, &lam) in s.cables.iter().zip(&s.lambda) {
@@ -979,7 +986,7 @@ impl DdSolver {
         if let Some(coarse) = self.coarse.as_mut() {
             let subs = &self.subs;
             self.ifaces.par_iter_mut().for_each(|it| {
-                kernels::jump(&mut it.jump, &subs[it.lo].y, &it.lo_idx, &subs[it.hi].y, &it.hi_idx);
+                kernels::jump_runs(&mut it.jump, &subs[it.lo].y, &subs[it.hi].y, &it.runs);
                 let m = it.p.ncols();
                 for q in 0..m {
                     let col = it.p.col(q);
@@ -1282,8 +1289,8 @@ impl DdSolver {
         self.subs.par_iter_mut().for_each(|s| {
             for &(i, is_lo) in &s.ifaces {
                 let it = &ifaces[i];
-                let (idx, coef) = if is_lo { (&it.lo_idx, 1.0) } else { (&it.hi_idx, -1.0) };
-                kernels::scatter_add(&mut s.g, idx, &it.cg_r, coef);
+                let (side, coef) = if is_lo { (Side::Lo, 1.0) } else { (Side::Hi, -1.0) };
+                kernels::scatter_add_runs(&mut s.g, side, &it.runs, &it.cg_r, coef);
             }
             // s.r is free between global steps: K_E B_Eᵀ r (lumped) or
             // S_E B_Eᵀ r (Dirichlet) goes there.
@@ -1297,7 +1304,7 @@ impl DdSolver {
         });
         let subs = &self.subs;
         self.ifaces.par_iter_mut().for_each(|it| {
-            kernels::jump(&mut it.cg_z, &subs[it.lo].r, &it.lo_idx, &subs[it.hi].r, &it.hi_idx);
+            kernels::jump_runs(&mut it.cg_z, &subs[it.lo].r, &subs[it.hi].r, &it.runs);
         });
         // Circulations of the redundant pair forces at cross points (zero
         // net force on every subdomain) are null directions too: project z
@@ -1307,8 +1314,8 @@ impl DdSolver {
         self.subs.par_iter_mut().for_each(|s| {
             for &(i, is_lo) in &s.ifaces {
                 let it = &ifaces[i];
-                let (idx, coef) = if is_lo { (&it.lo_idx, 1.0) } else { (&it.hi_idx, -1.0) };
-                kernels::scatter_add(&mut s.g, idx, &it.cg_z, coef);
+                let (side, coef) = if is_lo { (Side::Lo, 1.0) } else { (Side::Hi, -1.0) };
+                kernels::scatter_add_runs(&mut s.g, side, &it.runs, &it.cg_z, coef);
             }
         });
         let subs = &self.subs;
@@ -1347,7 +1354,7 @@ impl DdSolver {
     fn compute_jumps(&mut self) {
         let subs = &self.subs;
         self.ifaces.par_iter_mut().for_each(|it| {
-            kernels::jump(&mut it.jump, &subs[it.lo].v, &it.lo_idx, &subs[it.hi].v, &it.hi_idx);
+            kernels::jump_runs(&mut it.jump, &subs[it.lo].v, &subs[it.hi].v, &it.runs);
             it.jump_norm2 = kernels::norm2(&it.jump);
             it.force_norm2 = it.jump.iter().zip(&it.stiffness).map(|(j, k)| (j * k) * (j * k)).sum();
         });
@@ -1361,8 +1368,8 @@ impl DdSolver {
         self.subs.par_iter_mut().for_each(|s| {
             for &(i, is_lo) in &s.ifaces {
                 let it = &ifaces[i];
-                let (idx, coef) = if is_lo { (&it.lo_idx, 1.0) } else { (&it.hi_idx, -1.0) };
-                kernels::scatter_add(&mut s.g, idx, &it.jump, coef);
+                let (side, coef) = if is_lo { (Side::Lo, 1.0) } else { (Side::Hi, -1.0) };
+                kernels::scatter_add_runs(&mut s.g, side, &it.runs, &it.jump, coef);
             }
             for &l in &s.iface_dofs {
                 s.g[l as usize] *= s.weight[l as usize];
@@ -1370,7 +1377,7 @@ impl DdSolver {
         });
         let subs = &self.subs;
         self.ifaces.par_iter_mut().for_each(|it| {
-            kernels::force_update(&mut it.force, d, &subs[it.lo].g, &it.lo_idx, &subs[it.hi].g, &it.hi_idx);
+            kernels::force_update_runs(&mut it.force, d, &subs[it.lo].g, &subs[it.hi].g, &it.runs);
         });
         self.subs.par_iter_mut().for_each(|s| {
             for &l in &s.iface_dofs {
