@@ -188,8 +188,10 @@ impl Prepared {
     }
 }
 
-/// Worst relative coarse residual above which the result carries a note.
-const COARSE_RESIDUAL_NOTE: f64 = 1e-6;
+/// Worst backward error of the coarse solves above which the result
+/// carries a note: far above round-off (1e-16), the coarse step is not
+/// what the method assumes.
+const COARSE_RESIDUAL_NOTE: f64 = 1e-10;
 
 /// Relative slack threshold of a method: round-off for the direct solver,
 /// ten times the tolerance for the iterative ones.
@@ -279,8 +281,8 @@ pub fn solve_with_progress(scene: &Scene, opts: &SolveOptions, mut progress: Pro
     if let Prepared::Dd(dd, _) = &prepared {
         if let Some(r) = dd.coarse_residual().filter(|r| !(*r <= COARSE_RESIDUAL_NOTE)) {
             notes.push(format!(
-                "the coarse problem was solved to a relative residual of only {r:.1e} (badly conditioned \
-                 macro space): accuracy near that level is not guaranteed"
+                "the coarse problem was solved to a backward error of only {r:.1e} (badly conditioned \
+                 macro space): the result may be less accurate than its indicator says"
             ));
         }
     }

@@ -320,7 +320,7 @@ fn large_plate_coarse_problem_stays_exact() {
     .unwrap();
     let out = dd.solve(&model.load_cases[0], false, None).unwrap();
     let worst = dd.coarse_residual().unwrap();
-    assert!(worst < 1e-6, "coarse residual {worst:.2e}");
+    assert!(worst < 1e-12, "coarse backward error {worst:.2e}");
     let (first, last) = (out.history[0].indicator, out.history.last().unwrap().indicator);
     assert!(
         last < 0.05 * first,
