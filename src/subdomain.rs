@@ -33,6 +33,19 @@ pub const MAX_KERNEL_DIM: usize = 256;
 /// for a mechanism.
 pub const SUBDOMAIN_PIVOT_RATIO: f64 = 1e-9;
 
+/// Pivot ratio below which a pivot is a *suspect*: a mechanism whose
+/// round-off pivot came out large (1.2e-8 and 2.3e-7 in two 16k-dof parts
+/// of the 1e6-dof plate with 64 subdomains, which became compliances 1e10 ×
+/// the others and stalled CG), or a genuinely soft pivot (stiffness
+/// contrast). The two are told apart by [`MECHANISM_TOL`].
+pub const SUSPECT_PIVOT_RATIO: f64 = 1e-6;
+
+/// `‖K r‖ / (max diag K ‖r‖)` at most this for the kernel vector `r` of a
+/// suspect pivot means a mechanism (round-off leaves ~1e-16 … 1e-13);
+/// above it, the pivot is a genuine soft stiffness and stays in the
+/// factorization.
+pub const MECHANISM_TOL: f64 = 1e-11;
+
 /// Relative size of `‖K r‖ / (‖K‖ ‖r‖)` above which a computed kernel
 /// vector is rejected (indefinite or badly conditioned subdomain).
 pub const KERNEL_TOL: f64 = 1e-8;
@@ -139,7 +152,7 @@ impl SubdomainOperator {
         name: &dyn Fn(usize) -> String,
     ) -> Result<SubdomainOperator> {
         let n = stiffness.nrows();
-        match SparseCholesky::factor_checked(&stiffness, max_rhs, SUBDOMAIN_PIVOT_RATIO) {
+        match SparseCholesky::factor_checked(&stiffness, max_rhs, SUSPECT_PIVOT_RATIO) {
             Ok(chol) => {
                 return Ok(SubdomainOperator {
                     id,
@@ -169,7 +182,7 @@ impl SubdomainOperator {
                 name(dof)
             ),
         };
-        let scan = scan_pivots(&stiffness, SUBDOMAIN_PIVOT_RATIO)
+        let scan = scan_pivots(&stiffness, SUSPECT_PIVOT_RATIO)
             .map_err(|e| Error::Numerical(format!("subdomain {id}: {e:?}")))?;
         if let Some(&(dof, ratio)) = scan.negative.iter().find(|(_, r)| *r < -ROUNDOFF_NEGATIVE_PIVOT) {
             return Err(indefinite(dof, format!("indefinite (pivot ratio {ratio:.2e})")));
@@ -191,22 +204,7 @@ impl SubdomainOperator {
             });
         }
         let scale = diag_max(&stiffness);
-        // Refactor with F decoupled; a late pivot failure adds to F.
-        let (regular, chol) = loop {
-            let regular = decouple(&stiffness, &fixing, scale);
-            match SparseCholesky::factor_checked(&regular, max_rhs.max(fixing.len()), SUBDOMAIN_PIVOT_RATIO) {
-                Ok(c) => break (regular, c),
-                // A round-off pivot the scan kept: fix it too; the kernel
-                // check below rejects it if it was not a mechanism.
-                Err(FactorError::Pivot { dof, .. }) if !fixing.contains(&dof) && fixing.len() < MAX_KERNEL_DIM => {
-                    fixing.push(dof);
-                    fixing.sort_unstable();
-                }
-                Err(FactorError::Pivot { dof, .. }) => return Err(indefinite(dof, "not positive definite".into())),
-                Err(FactorError::Internal(m)) => return Err(Error::Numerical(format!("subdomain {id}: {m}"))),
-            }
-        };
-        drop(regular);
+        let chol = factor_with_fixing(&stiffness, &mut fixing, scale, max_rhs, id, &indefinite)?;
         let mut op = SubdomainOperator {
             id,
             stiffness,
@@ -214,21 +212,30 @@ impl SubdomainOperator {
             fixing,
             kernel: Mat::zeros(n, 0),
         };
-        // R = [−K_rr⁻¹ K_rf; I]
+        let mut cols = op.fixed_kernel_columns();
+        // Suspects whose kernel vector is not one (K r clearly nonzero) are
+        // soft stiffness: release them and factor again (once; a pivot that
+        // then fails below SUBDOMAIN_PIVOT_RATIO is fixed again).
+        let soft: Vec<usize> = op
+            .fixing
+            .iter()
+            .enumerate()
+            .filter(|&(j, _)| {
+                let col = &cols[j * n..(j + 1) * n];
+                let mut kr = vec![0.0; n];
+                sym_matvec(&op.stiffness, col, &mut kr);
+                norm(&kr) > MECHANISM_TOL * scale * norm(col)
+            })
+            .map(|(_, &f)| f)
+            .collect();
+        if !soft.is_empty() {
+            let mut fixing = std::mem::take(&mut op.fixing);
+            fixing.retain(|f| !soft.contains(f));
+            op.chol = factor_with_fixing(&op.stiffness, &mut fixing, scale, max_rhs, id, &indefinite)?;
+            op.fixing = fixing;
+            cols = op.fixed_kernel_columns();
+        }
         let r = op.fixing.len();
-        let mut cols = vec![0.0; n * r];
-        let mut unit = vec![0.0; n];
-        for (j, &f) in op.fixing.iter().enumerate() {
-            unit[f] = 1.0;
-            let col = &mut cols[j * n..(j + 1) * n];
-            sym_matvec(&op.stiffness, &unit, col);
-            unit[f] = 0.0;
-            col.iter_mut().for_each(|v| *v = -*v);
-        }
-        op.solve_columns(&mut cols, r);
-        for (j, &f) in op.fixing.iter().enumerate() {
-            cols[j * n + f] = 1.0;
-        }
         let raw = Mat::from_fn(n, r, |i, j| cols[j * n + i]);
         let q = orthonormal_columns(&raw, 1e-10);
         if q.ncols() < r {
@@ -253,6 +260,27 @@ impl SubdomainOperator {
         }
         op.kernel = q;
         Ok(op)
+    }
+
+    /// `R = [−K_rr⁻¹ K_rf; I]`, column-major `n × |F|`: the kernel vector of
+    /// each fixing dof with the other fixing dofs held at zero.
+    fn fixed_kernel_columns(&mut self) -> Vec<f64> {
+        let n = self.n();
+        let r = self.fixing.len();
+        let mut cols = vec![0.0; n * r];
+        let mut unit = vec![0.0; n];
+        for (j, &f) in self.fixing.iter().enumerate() {
+            unit[f] = 1.0;
+            let col = &mut cols[j * n..(j + 1) * n];
+            sym_matvec(&self.stiffness, &unit, col);
+            unit[f] = 0.0;
+            col.iter_mut().for_each(|v| *v = -*v);
+        }
+        self.solve_columns(&mut cols, r);
+        for (j, &f) in self.fixing.iter().enumerate() {
+            cols[j * n + f] = 1.0;
+        }
+        cols
     }
 
     /// Number of local dofs.
@@ -308,6 +336,35 @@ impl SubdomainOperator {
     pub fn apply(&self, x: &[f64], y: &mut [f64]) {
         sym_matvec(&self.stiffness, x, y);
     }
+}
+
+/// Factors `K` with the fixing dofs decoupled; a pivot that still fails
+/// (round-off the scan kept) is fixed too, and the kernel check rejects it
+/// later if it was not a mechanism.
+fn factor_with_fixing(
+    stiffness: &SparseColMat<usize, f64>,
+    fixing: &mut Vec<usize>,
+    scale: f64,
+    max_rhs: usize,
+    id: usize,
+    indefinite: &dyn Fn(usize, String) -> Error,
+) -> Result<SparseCholesky> {
+    loop {
+        let regular = decouple(stiffness, fixing, scale);
+        match SparseCholesky::factor_checked(&regular, max_rhs.max(fixing.len()), SUBDOMAIN_PIVOT_RATIO) {
+            Ok(c) => return Ok(c),
+            Err(FactorError::Pivot { dof, .. }) if !fixing.contains(&dof) && fixing.len() < MAX_KERNEL_DIM => {
+                fixing.push(dof);
+                fixing.sort_unstable();
+            }
+            Err(FactorError::Pivot { dof, .. }) => return Err(indefinite(dof, "not positive definite".into())),
+            Err(FactorError::Internal(m)) => return Err(Error::Numerical(format!("subdomain {id}: {m}"))),
+        }
+    }
+}
+
+fn norm(v: &[f64]) -> f64 {
+    v.iter().map(|x| x * x).sum::<f64>().sqrt()
 }
 
 fn diag_max(lower: &SparseColMat<usize, f64>) -> f64 {
