@@ -887,11 +887,12 @@ impl DdSolver {
             let v2: f64 = self.subs.iter().map(|s| s.v_norm2).sum();
             let vn = v2.sqrt().max(f64::MIN_POSITIVE);
             let jump = self.ifaces.iter().map(|i| i.jump_norm2).sum::<f64>().sqrt() / vn;
-            let force = self.ifaces.iter().map(|i| i.force_norm2).sum::<f64>().sqrt() / b_norm.max(f64::MIN_POSITIVE);
+            let force_scale = self.force_scale(b_norm);
+            let force = self.ifaces.iter().map(|i| i.force_norm2).sum::<f64>().sqrt() / force_scale;
             let jump = jump.max(force);
             let cable = if has_cables {
                 let length = self.subs.iter().map(|s| s.dlambda2).sum::<f64>().sqrt() / vn;
-                let force = self.subs.iter().map(|s| s.dforce2).sum::<f64>().sqrt() / b_norm.max(f64::MIN_POSITIVE);
+                let force = self.subs.iter().map(|s| s.dforce2).sum::<f64>().sqrt() / force_scale;
                 Some(length.max(force))
             } else {
                 None
@@ -1050,8 +1051,19 @@ impl DdSolver {
         }
     }
 
-    /// Norm of the assembled right-hand side: the force scale of the
-    /// indicators.
+    /// The force scale of the indicators: the larger of the load norm and
+    /// the norm of the interface forces. The unbalanced force a jump leaves
+    /// (`k ∘ J V`) is an error in the tensions of the elements at the cut,
+    /// so it is measured against the forces the structure carries there;
+    /// on large soft plates those are 10³–10⁴ × the load, and against the
+    /// load alone the indicator stalled at 3e-4 on its round-off floor while
+    /// the true error was 1e-8 (300 × 300 grid, 64 subdomains).
+    fn force_scale(&self, b_norm: f64) -> f64 {
+        let f2: f64 = self.ifaces.iter().map(|it| kernels::norm2(&it.force)).sum();
+        b_norm.max(f2.sqrt()).max(f64::MIN_POSITIVE)
+    }
+
+    /// Norm of the assembled right-hand side (loads and prestrain).
     fn load_norm(&self) -> f64 {
         let mut b_global = vec![0.0; self.n_free];
         for (s, dofs) in self.subs.iter().zip(&self.dof_maps) {
@@ -1269,7 +1281,7 @@ impl DdSolver {
         }
         let vn = v2.sqrt().max(f64::MIN_POSITIVE);
         let jump = self.ifaces.iter().map(|i| i.jump_norm2).sum::<f64>().sqrt() / vn;
-        let force = self.ifaces.iter().map(|i| i.force_norm2).sum::<f64>().sqrt() / b_norm;
+        let force = self.ifaces.iter().map(|i| i.force_norm2).sum::<f64>().sqrt() / self.force_scale(b_norm);
         if v2.is_finite() {
             jump.max(force)
         } else {
