@@ -72,6 +72,24 @@ impl From<MethodArg> for Method {
     }
 }
 
+/// The iterative methods, for `accuracy --methods`.
+#[derive(Clone, Copy, ValueEnum)]
+enum IterativeArg {
+    Monolevel,
+    Multilevel,
+    Cg,
+}
+
+impl From<IterativeArg> for Method {
+    fn from(m: IterativeArg) -> Method {
+        match m {
+            IterativeArg::Monolevel => Method::Monolevel,
+            IterativeArg::Multilevel => Method::Multilevel,
+            IterativeArg::Cg => Method::Cg,
+        }
+    }
+}
+
 fn parse_preconditioner(s: &str) -> std::result::Result<Preconditioner, String> {
     s.parse()
 }
@@ -156,6 +174,10 @@ struct AccuracyArgs {
         default_value = "1e-2,1e-3,1e-4,1e-5,1e-6,1e-7,1e-8,1e-9,1e-10"
     )]
     tolerances: Vec<f64>,
+    /// Iterative methods to run, comma separated (default: all; the direct
+    /// solve always runs as the reference)
+    #[arg(long, value_name = "M,...", value_delimiter = ',')]
+    methods: Vec<IterativeArg>,
     /// Iteration limit (default: the scene's)
     #[arg(long, value_name = "K")]
     max_iterations: Option<usize>,
@@ -535,6 +557,9 @@ fn cmd_accuracy(a: AccuracyArgs) -> Result<i32> {
         opts.subdomains = n;
     }
     opts.tolerances = a.tolerances.clone();
+    if !a.methods.is_empty() {
+        opts.methods = a.methods.iter().map(|&m| m.into()).collect();
+    }
     if let Some(k) = a.max_iterations {
         opts.max_iterations = k;
     }

@@ -360,6 +360,9 @@ pub struct AccuracyOptions {
     pub subdomains: usize,
     /// Tolerances to sweep, any order (run from loose to tight).
     pub tolerances: Vec<f64>,
+    /// Iterative methods to run (the direct solve always runs: it is the
+    /// reference). Default: all of them.
+    pub methods: Vec<Method>,
     pub max_iterations: usize,
     pub search_direction: SearchDirection,
     /// Also sample the true error along the iterations of the tightest run
@@ -380,6 +383,7 @@ impl AccuracyOptions {
                 4
             },
             tolerances: default_tolerances(),
+            methods: ITERATIVE_METHODS.to_vec(),
             max_iterations: scene.solver.max_iterations,
             search_direction: scene.solver.search_direction,
             history: true,
@@ -387,6 +391,9 @@ impl AccuracyOptions {
         }
     }
 }
+
+/// Every iterative method, in the order the studies run them.
+pub const ITERATIVE_METHODS: [Method; 3] = [Method::Monolevel, Method::Multilevel, Method::Cg];
 
 /// 1e-2, 1e-3, …, 1e-10.
 pub fn default_tolerances() -> Vec<f64> {
@@ -516,7 +523,20 @@ pub fn accuracy(scene: &Scene, opts: &AccuracyOptions, mut obs: Observer<'_>) ->
     }
     tols.sort_by(|a, b| b.partial_cmp(a).unwrap());
     tols.dedup();
-    let iterative = [Method::Monolevel, Method::Multilevel, Method::Cg];
+    let iterative: Vec<Method> = ITERATIVE_METHODS
+        .into_iter()
+        .filter(|m| opts.methods.contains(m))
+        .collect();
+    if let Some(m) = opts.methods.iter().find(|m| !ITERATIVE_METHODS.contains(m)) {
+        return Err(Error::input(
+            "methods",
+            None,
+            format!(
+                "{} is not an iterative method (the direct solve always runs as the reference)",
+                m.name()
+            ),
+        ));
+    }
     let runs = 1 + iterative.len() * tols.len();
     start(&mut obs, "direct", 0, runs);
     let dopts = method_options(
@@ -825,7 +845,7 @@ pub fn scaling(opts: &ScalingOptions, mut obs: Observer<'_>) -> Result<ScalingRe
     }
     let mut plan: Vec<(&str, usize, usize)> = opts.subdomains.iter().map(|&n| ("strong", strong, n)).collect();
     plan.extend(opts.sizes.iter().zip(&opts.subdomains).map(|(&s, &n)| ("weak", s, n)));
-    let methods = [Method::Monolevel, Method::Multilevel, Method::Cg];
+    let methods = ITERATIVE_METHODS;
     let runs = plan.len() * methods.len();
     let mut cache: BTreeMap<usize, (Scene, SolveResult, usize, usize)> = BTreeMap::new();
     let mut rows = Vec::new();
