@@ -23,6 +23,11 @@ use faer::Mat;
 /// subdomain is mostly mechanism and the partition is at fault.
 pub const MAX_KERNEL_DIM: usize = 256;
 
+/// Most suspect pivots examined in one subdomain (mechanisms and soft
+/// stiffness together; the soft ones are released before the kernel is
+/// held to [`MAX_KERNEL_DIM`]).
+const MAX_SUSPECTS: usize = 8 * MAX_KERNEL_DIM;
+
 /// Pivot ratio below which a subdomain pivot counts as zero. Larger than the
 /// whole-structure threshold: round-off on mechanisms of large subdomains
 /// reaches 1.1e-10 of the diagonal (a 4 041-dof part of a 2.4e5-dof plate;
@@ -194,14 +199,17 @@ impl SubdomainOperator {
         fixing.extend(scan.negative.iter().map(|&(dof, _)| dof));
         fixing.sort_unstable();
         fixing.dedup();
-        if fixing.len() > MAX_KERNEL_DIM {
-            return Err(Error::IndefiniteSubdomain {
-                subdomain: id,
-                message: format!(
-                    "kernel of dimension {} exceeds {MAX_KERNEL_DIM}: the partition cuts it into loose pieces",
-                    fixing.len()
-                ),
-            });
+        // Suspects include soft pivots, released below: bound them loosely
+        // here (the dense kernel columns cost n × |F|), the kernel itself
+        // strictly once they are sorted out.
+        let too_many = |dim: usize| Error::IndefiniteSubdomain {
+            subdomain: id,
+            message: format!(
+                "kernel of dimension {dim} exceeds {MAX_KERNEL_DIM}: the partition cuts it into loose pieces"
+            ),
+        };
+        if fixing.len() > MAX_SUSPECTS {
+            return Err(too_many(fixing.len()));
         }
         let scale = diag_max(&stiffness);
         let chol = factor_with_fixing(&stiffness, &mut fixing, scale, max_rhs, id, &indefinite)?;
@@ -236,6 +244,9 @@ impl SubdomainOperator {
             cols = op.fixed_kernel_columns();
         }
         let r = op.fixing.len();
+        if r > MAX_KERNEL_DIM {
+            return Err(too_many(r));
+        }
         let raw = Mat::from_fn(n, r, |i, j| cols[j * n + i]);
         let q = orthonormal_columns(&raw, 1e-10);
         if q.ncols() < r {
@@ -353,7 +364,7 @@ fn factor_with_fixing(
         let regular = decouple(stiffness, fixing, scale);
         match SparseCholesky::factor_checked(&regular, max_rhs.max(fixing.len()), SUBDOMAIN_PIVOT_RATIO) {
             Ok(c) => return Ok(c),
-            Err(FactorError::Pivot { dof, .. }) if !fixing.contains(&dof) && fixing.len() < MAX_KERNEL_DIM => {
+            Err(FactorError::Pivot { dof, .. }) if !fixing.contains(&dof) && fixing.len() < MAX_SUSPECTS => {
                 fixing.push(dof);
                 fixing.sort_unstable();
             }

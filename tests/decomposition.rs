@@ -582,3 +582,44 @@ fn soft_pivot_in_the_suspect_band_stays_stiffness() {
         assert!(res < 1e-8, "grounded = {grounded}: ‖K y − f‖/‖f‖ = {res:e}");
     }
 }
+
+/// More soft pivots than a kernel may have mechanisms: 300 pairs hung by a
+/// 1e-7 spring each are all suspects, all soft, and the subdomain is
+/// regular; 300 floating pairs are 300 mechanisms, beyond `MAX_KERNEL_DIM`,
+/// and are refused by name.
+#[test]
+fn many_soft_pivots_are_not_a_kernel_but_many_mechanisms_are_refused() {
+    use nsdd::error::Error;
+    use nsdd::factor::lower_csc;
+    use nsdd::subdomain::{SubdomainOperator, MAX_KERNEL_DIM};
+    let units = 300;
+    assert!(units > MAX_KERNEL_DIM);
+    for hung in [true, false] {
+        // Unit u: dofs 3u (grounded anchor), 3u+1, 3u+2 (a stiff pair).
+        let mut trip = Vec::new();
+        let mut spring = |a: usize, b: usize, s: f64| {
+            trip.extend([(a, a, s), (b, b, s), (a.max(b), a.min(b), -s)]);
+        };
+        for u in 0..units {
+            spring(3 * u + 1, 3 * u + 2, 1.0);
+            if hung {
+                spring(3 * u, 3 * u + 1, 1e-7);
+            }
+        }
+        for u in 0..units {
+            trip.push((3 * u, 3 * u, 1.0));
+        }
+        let lower = lower_csc(3 * units, &trip).unwrap();
+        let op = SubdomainOperator::from_matrix(0, lower, 1, None, &|l| format!("dof {l}"));
+        if hung {
+            assert_eq!(op.unwrap().kernel_dim(), 0);
+        } else {
+            match op {
+                Err(Error::IndefiniteSubdomain { subdomain: 0, message }) => {
+                    assert!(message.contains("exceeds"), "{message}")
+                }
+                other => panic!("expected a refused kernel, got {other:?}"),
+            }
+        }
+    }
+}
