@@ -15,6 +15,7 @@
 use crate::decomposition::SubdomainDofs;
 use crate::error::{Error, Result};
 use crate::factor::{lower_csc, lower_diagonal, scan_pivots, sym_matvec, FactorError, SparseCholesky};
+use crate::kernels;
 use crate::model::Model;
 use faer::sparse::SparseColMat;
 use faer::Mat;
@@ -224,18 +225,15 @@ impl SubdomainOperator {
         // Suspects whose kernel vector is not one (K r clearly nonzero) are
         // soft stiffness: release them and factor again (once; a pivot that
         // then fails below SUBDOMAIN_PIVOT_RATIO is fixed again).
-        let soft: Vec<usize> = op
-            .fixing
-            .iter()
-            .enumerate()
-            .filter(|&(j, _)| {
-                let col = &cols[j * n..(j + 1) * n];
-                let mut kr = vec![0.0; n];
-                sym_matvec(&op.stiffness, col, &mut kr);
-                norm(&kr) > MECHANISM_TOL * scale * norm(col)
-            })
-            .map(|(_, &f)| f)
-            .collect();
+        let mut soft = Vec::new();
+        let mut kr = vec![0.0; n];
+        for (j, &f) in op.fixing.iter().enumerate() {
+            let col = &cols[j * n..(j + 1) * n];
+            sym_matvec(&op.stiffness, col, &mut kr);
+            if kernels::norm2(&kr).sqrt() > MECHANISM_TOL * scale * kernels::norm2(col).sqrt() {
+                soft.push(f);
+            }
+        }
         if !soft.is_empty() {
             let mut fixing = std::mem::take(&mut op.fixing);
             fixing.retain(|f| !soft.contains(f));
@@ -256,7 +254,6 @@ impl SubdomainOperator {
             });
         }
         // A posteriori: every kernel vector must satisfy K r ≈ 0.
-        let mut kr = vec![0.0; n];
         for j in 0..q.ncols() {
             let col: Vec<f64> = (0..n).map(|i| q[(i, j)]).collect();
             sym_matvec(&op.stiffness, &col, &mut kr);
@@ -372,10 +369,6 @@ fn factor_with_fixing(
             Err(FactorError::Internal(m)) => return Err(Error::Numerical(format!("subdomain {id}: {m}"))),
         }
     }
-}
-
-fn norm(v: &[f64]) -> f64 {
-    v.iter().map(|x| x * x).sum::<f64>().sqrt()
 }
 
 fn diag_max(lower: &SparseColMat<usize, f64>) -> f64 {
