@@ -3,7 +3,8 @@
 //! is called" check.
 //!
 //! Sizes: double-layer grids `grid(nx = ny = n)` have about `6 n²` free
-//! dofs: n = 37 → 8.2k, n = 41 → 10.1k, n = 130 → 101k.
+//! dofs: n = 37 → 8.2k, n = 41 → 10.1k, n = 52 → 16.2k (the subdomain size
+//! of the 1e6-dof plate with 64 subdomains), n = 130 → 101k.
 //!
 //! Groups (ids are `case/parameter`):
 //! - `subdomain_solve`: one subdomain's factor (the whole grid as one
@@ -96,7 +97,7 @@ fn pseudo_random(n: usize) -> Vec<f64> {
 fn subdomain_solve(c: &mut Criterion) {
     let mut g = c.benchmark_group("subdomain_solve");
     g.sampling_mode(SamplingMode::Flat);
-    for n in [37, LARGE] {
+    for n in [37, 52, LARGE] {
         let scene = grid_scene(n, false);
         let model = Model::from_scene(&scene).unwrap();
         let dec = decompose(&model, &scene, 1).unwrap();

@@ -152,7 +152,7 @@ struct AlgSetup {
     #[allow(dead_code)]
     decomposition: Box<Decomposition>,
     solver: Box<DdSolver>,
-    /// Per subdomain: caller local index of each sorted local dof.
+    /// Per subdomain: caller local index of each decomposition local dof.
     order: Vec<Vec<usize>>,
 }
 
@@ -1514,14 +1514,38 @@ fn alg_setup(h: &mut NsddAlgebraic, opts: &SolveOptions) -> FfiResult {
             )));
         }
     }
-    // Sorted local numbering (the decomposition's): position p holds the
-    // caller's local dof order[p]; inverse[caller] = p.
-    let order: Vec<Vec<usize>> = subs
+    // The decomposition takes each subdomain's dofs in increasing global
+    // order and lays them out its own way (interior first, then interface
+    // by interface): its local dof p is the caller's local dof order[p];
+    // inverse[caller] = p.
+    let sorted: Vec<Vec<usize>> = subs
         .iter()
         .map(|sub| {
             let mut o: Vec<usize> = (0..sub.n_local).collect();
             o.sort_unstable_by_key(|&i| sub.local_to_global[i]);
             o
+        })
+        .collect();
+    let dof_sets: Vec<Vec<usize>> = subs
+        .iter()
+        .zip(&sorted)
+        .map(|(sub, o)| o.iter().map(|&i| sub.local_to_global[i]).collect())
+        .collect();
+    let partition = Partition {
+        part_of: vec![],
+        elements_of: vec![vec![]; ns],
+    };
+    let dec = Box::new(Decomposition::from_dof_sets(partition, dof_sets, h.n_global));
+    let order: Vec<Vec<usize>> = dec
+        .subdomains
+        .iter()
+        .zip(&sorted)
+        .map(|(sd, o)| {
+            let mut ord = vec![0; o.len()];
+            for (k, &l) in sd.by_global.iter().enumerate() {
+                ord[l as usize] = o[k];
+            }
+            ord
         })
         .collect();
     let inverse: Vec<Vec<usize>> = order
@@ -1534,16 +1558,6 @@ fn alg_setup(h: &mut NsddAlgebraic, opts: &SolveOptions) -> FfiResult {
             inv
         })
         .collect();
-    let dof_sets: Vec<Vec<usize>> = subs
-        .iter()
-        .zip(&order)
-        .map(|(sub, o)| o.iter().map(|&i| sub.local_to_global[i]).collect())
-        .collect();
-    let partition = Partition {
-        part_of: vec![],
-        elements_of: vec![vec![]; ns],
-    };
-    let dec = Box::new(Decomposition::from_dof_sets(partition, dof_sets, h.n_global));
 
     let ops: Vec<crate::Result<SubdomainOperator>> = subs
         .par_iter()
@@ -1568,7 +1582,8 @@ fn alg_setup(h: &mut NsddAlgebraic, opts: &SolveOptions) -> FfiResult {
                 let i = order[s][p];
                 format!("local dof {i} (global dof {})", sub.local_to_global[i])
             };
-            SubdomainOperator::from_matrix(s, stiffness, 64, kernel.as_ref(), &name)
+            let rank = dec.subdomains[s].reference_rank();
+            SubdomainOperator::from_matrix(s, stiffness, 64, kernel.as_ref(), Some(&rank), &name)
         })
         .collect();
     let mut operators = Vec::with_capacity(ns);

@@ -8,6 +8,15 @@
 //! interface vector stores interfaces one after the other; entry `j` belongs
 //! to the pair `(lo, hi)` with `lo < hi`. `B_E` is never formed: it is the
 //! sign (+ for `lo`, − for `hi`) and the local dof of each entry.
+//!
+//! Local numbering: each subdomain numbers its interior dofs first (in
+//! increasing global order), then its interface dofs interface by interface,
+//! in the order of the global interface vector. An interface's entries then
+//! map to contiguous local dofs on both sides (except at cross points
+//! already numbered by an earlier interface), so the gather/scatter kernels
+//! run over long unit-stride runs. Factorizations do not see this layout:
+//! they are ordered in the increasing-global reference numbering
+//! ([`SubdomainDofs::reference_rank`], `factor::EliminationOrder`).
 
 use crate::model::{Model, FIXED};
 use crate::partition::Partition;
@@ -17,8 +26,11 @@ use crate::partition::Partition;
 pub struct SubdomainDofs {
     /// Elements of this subdomain.
     pub elements: Vec<usize>,
-    /// Global free dofs touched by its elements, increasing.
+    /// Global free dof of each local dof: interior dofs first, then
+    /// interface dofs grouped by interface (see the module docs).
     pub dofs: Vec<usize>,
+    /// Local dofs in increasing global order.
+    pub by_global: Vec<u32>,
     /// For each local dof, the number of subdomains sharing it (≥ 1).
     pub multiplicity: Vec<u32>,
     /// Interfaces this subdomain belongs to (indices into `interfaces`).
@@ -28,7 +40,20 @@ pub struct SubdomainDofs {
 impl SubdomainDofs {
     /// Local index of global free dof `dof` (binary search).
     pub fn local(&self, dof: usize) -> Option<usize> {
-        self.dofs.binary_search(&dof).ok()
+        self.by_global
+            .binary_search_by_key(&dof, |&l| self.dofs[l as usize])
+            .ok()
+            .map(|k| self.by_global[k] as usize)
+    }
+
+    /// Position of each local dof in increasing global order: the reference
+    /// numbering the subdomain's factorization is ordered in.
+    pub fn reference_rank(&self) -> Vec<usize> {
+        let mut rank = vec![0; self.dofs.len()];
+        for (k, &l) in self.by_global.iter().enumerate() {
+            rank[l as usize] = k;
+        }
+        rank
     }
 }
 
@@ -118,6 +143,7 @@ impl Decomposition {
             }
             subdomains.push(SubdomainDofs {
                 elements: partition.elements_of.get(s).cloned().unwrap_or_default(),
+                by_global: (0..dofs.len() as u32).collect(),
                 dofs,
                 multiplicity: Vec::new(),
                 interfaces: Vec::new(),
@@ -156,6 +182,29 @@ impl Decomposition {
             subdomains[lo].interfaces.push(id);
             subdomains[hi].interfaces.push(id);
             interfaces.push(Interface { lo, hi, start, end: k });
+        }
+        for (s, sd) in subdomains.iter_mut().enumerate() {
+            let new_of = interface_layout(s, sd, &interfaces, &entry_lo_local, &entry_hi_local);
+            for it in &sd.interfaces {
+                let it = &interfaces[*it];
+                let side = if it.lo == s {
+                    &mut entry_lo_local
+                } else {
+                    &mut entry_hi_local
+                };
+                for l in &mut side[it.start..it.end] {
+                    *l = new_of[*l as usize];
+                }
+            }
+            let mut dofs = vec![0; sd.dofs.len()];
+            let mut multiplicity = vec![0; sd.dofs.len()];
+            for (old, &new) in new_of.iter().enumerate() {
+                dofs[new as usize] = sd.dofs[old];
+                multiplicity[new as usize] = sd.multiplicity[old];
+            }
+            sd.dofs = dofs;
+            sd.multiplicity = multiplicity;
+            sd.by_global = new_of;
         }
         Decomposition {
             partition,
@@ -214,4 +263,41 @@ impl Decomposition {
             element_imbalance: if mean_e > 0.0 { max_e / mean_e } else { 1.0 },
         }
     }
+}
+
+/// New local number of each dof of `sd` (given in increasing global order):
+/// interior dofs first, then each interface's dofs not numbered yet, in
+/// entry order. `lo_local`/`hi_local` are still in the sorted numbering.
+fn interface_layout(
+    s: usize,
+    sd: &SubdomainDofs,
+    interfaces: &[Interface],
+    lo_local: &[u32],
+    hi_local: &[u32],
+) -> Vec<u32> {
+    const UNSET: u32 = u32::MAX;
+    let mut new_of = vec![UNSET; sd.dofs.len()];
+    let mut next = 0u32;
+    for (l, &m) in sd.multiplicity.iter().enumerate() {
+        if m == 1 {
+            new_of[l] = next;
+            next += 1;
+        }
+    }
+    for &i in &sd.interfaces {
+        let it = &interfaces[i];
+        let side = if it.lo == s { lo_local } else { hi_local };
+        for &l in &side[it.start..it.end] {
+            if new_of[l as usize] == UNSET {
+                new_of[l as usize] = next;
+                next += 1;
+            }
+        }
+    }
+    // Every shared dof is on an interface; anything else keeps its order.
+    for slot in new_of.iter_mut().filter(|v| **v == UNSET) {
+        *slot = next;
+        next += 1;
+    }
+    new_of
 }

@@ -121,15 +121,20 @@ impl SparseCholesky {
         max_rhs: usize,
         pivot_ratio: f64,
     ) -> Result<Self, FactorError> {
+        Self::factor_ordered(lower, None, max_rhs, pivot_ratio)
+    }
+
+    /// [`SparseCholesky::factor_checked`] with a precomputed elimination
+    /// order (`None`: AMD on `lower` as numbered).
+    pub fn factor_ordered(
+        lower: &SparseColMat<usize, f64>,
+        order: Option<&EliminationOrder>,
+        max_rhs: usize,
+        pivot_ratio: f64,
+    ) -> Result<Self, FactorError> {
         let n = lower.nrows();
         let t = std::time::Instant::now();
-        let symbolic = factorize_symbolic_cholesky(
-            lower.symbolic(),
-            Side::Lower,
-            SymmetricOrdering::Amd,
-            CholeskySymbolicParams::default(),
-        )
-        .map_err(|e| FactorError::Internal(format!("symbolic analysis: {e:?}")))?;
+        let symbolic = symbolic_cholesky(lower, order)?;
         let symbolic_s = t.elapsed().as_secs_f64();
         let t = std::time::Instant::now();
         let mut l_values = vec![0.0f64; symbolic.len_val()];
@@ -249,6 +254,107 @@ impl SparseCholesky {
     }
 }
 
+/// A fill-reducing elimination order for one sparsity pattern, computed
+/// once and shared by every factorization of matrices with that pattern (a
+/// singular subdomain is factored up to four times).
+///
+/// [`EliminationOrder::amd_in_reference`] makes the order a function of a
+/// *reference* numbering of the dofs rather than of the matrix's own: the
+/// decomposition lays each subdomain's dofs out interface by interface (so
+/// the gather/scatter kernels see long contiguous runs), while its
+/// factorization keeps the elimination order AMD gives in increasing global
+/// dof order. AMD breaks ties by input order, and which round-off pivots
+/// appear at a cut depends on the order, so the layout must not change it.
+#[derive(Debug, Clone)]
+pub struct EliminationOrder {
+    fwd: Vec<usize>,
+    inv: Vec<usize>,
+}
+
+impl EliminationOrder {
+    /// AMD on the pattern of `lower`, with the rows and columns renumbered
+    /// by `rank` first (`rank[i]` is the reference number of row `i`, a
+    /// permutation of `0..n`). With the identity it is faer's own AMD.
+    pub fn amd_in_reference(lower: &SparseColMat<usize, f64>, rank: &[usize]) -> Result<Self, FactorError> {
+        use faer::sparse::linalg::amd;
+        let n = lower.nrows();
+        if rank.len() != n {
+            return Err(FactorError::Internal(format!(
+                "reference numbering has {} entries for a {n}x{n} matrix",
+                rank.len()
+            )));
+        }
+        let mut member = vec![usize::MAX; n];
+        for (i, &r) in rank.iter().enumerate() {
+            if r >= n || member[r] != usize::MAX {
+                return Err(FactorError::Internal(format!(
+                    "reference numbering is not a permutation (rank {r} of row {i})"
+                )));
+            }
+            member[r] = i;
+        }
+        let a = lower.as_ref();
+        let mut triplets = Vec::with_capacity(a.compute_nnz());
+        for j in 0..n {
+            for i in a.row_idx_of_col(j) {
+                let (ri, rj) = (rank[i], rank[j]);
+                triplets.push((ri.max(rj), ri.min(rj), 0.0));
+            }
+        }
+        let reference = lower_csc(n, &triplets)?;
+        let mut ref_fwd = vec![0usize; n];
+        let mut ref_inv = vec![0usize; n];
+        let control = CholeskySymbolicParams::default().amd_params;
+        let req = amd::order_maybe_unsorted_scratch::<usize>(n, reference.compute_nnz());
+        let mut buf = MemBuffer::try_new(req).map_err(|_| FactorError::Internal("out of memory".into()))?;
+        amd::order_maybe_unsorted(
+            &mut ref_fwd,
+            &mut ref_inv,
+            reference.symbolic(),
+            control,
+            MemStack::new(&mut buf),
+        )
+        .map_err(|e| FactorError::Internal(format!("AMD ordering: {e:?}")))?;
+        // Step k eliminates reference dof ref_fwd[k], i.e. row member[..].
+        let fwd: Vec<usize> = ref_fwd.iter().map(|&r| member[r]).collect();
+        let mut inv = vec![0usize; n];
+        for (k, &i) in fwd.iter().enumerate() {
+            inv[i] = k;
+        }
+        Ok(EliminationOrder { fwd, inv })
+    }
+
+    /// Row eliminated at each step.
+    pub fn forward(&self) -> &[usize] {
+        &self.fwd
+    }
+}
+
+/// Symbolic analysis of `lower` in `order` (`None`: faer's AMD).
+fn symbolic_cholesky(
+    lower: &SparseColMat<usize, f64>,
+    order: Option<&EliminationOrder>,
+) -> Result<SymbolicCholesky<usize>, FactorError> {
+    let n = lower.nrows();
+    let ordering = match order {
+        None => SymmetricOrdering::Amd,
+        Some(o) if o.fwd.len() == n => SymmetricOrdering::Custom(faer::perm::PermRef::new_checked(&o.fwd, &o.inv, n)),
+        Some(o) => {
+            return Err(FactorError::Internal(format!(
+                "elimination order of length {} for a {n}x{n} matrix",
+                o.fwd.len()
+            )))
+        }
+    };
+    factorize_symbolic_cholesky(
+        lower.symbolic(),
+        Side::Lower,
+        ordering,
+        CholeskySymbolicParams::default(),
+    )
+    .map_err(|e| FactorError::Internal(format!("symbolic analysis: {e:?}")))
+}
+
 /// Diagonal of the stored factor (of `L` for LLT, of `D` for LDLT), in the
 /// permuted order.
 fn l_diagonal(symbolic: &SymbolicCholesky<usize>, values: &[f64]) -> Vec<f64> {
@@ -294,9 +400,14 @@ pub struct PivotScan {
     pub negative: Vec<(usize, f64)>,
 }
 
-/// Scans the pivots of the matrix whose lower triangle is `lower`. A pivot is
-/// negligible below `ratio` times the largest diagonal entry.
-pub fn scan_pivots(lower: &SparseColMat<usize, f64>, ratio: f64) -> Result<PivotScan, FactorError> {
+/// Scans the pivots of the matrix whose lower triangle is `lower`, eliminated
+/// in `order` (`None`: AMD). A pivot is negligible below `ratio` times the
+/// largest diagonal entry.
+pub fn scan_pivots(
+    lower: &SparseColMat<usize, f64>,
+    order: Option<&EliminationOrder>,
+    ratio: f64,
+) -> Result<PivotScan, FactorError> {
     use faer::linalg::cholesky::ldlt::factor::LdltRegularization;
     let n = lower.nrows();
     let adiag = lower_diagonal(lower);
@@ -304,13 +415,7 @@ pub fn scan_pivots(lower: &SparseColMat<usize, f64>, ratio: f64) -> Result<Pivot
     // A distinctive value, so regularised pivots can be recognised exactly.
     let delta = scale * (1.0 + 1.0 / 1024.0);
     let eps = ratio * scale;
-    let symbolic = factorize_symbolic_cholesky(
-        lower.symbolic(),
-        Side::Lower,
-        SymmetricOrdering::Amd,
-        CholeskySymbolicParams::default(),
-    )
-    .map_err(|e| FactorError::Internal(format!("symbolic analysis: {e:?}")))?;
+    let symbolic = symbolic_cholesky(lower, order)?;
     let mut values = vec![0.0f64; symbolic.len_val()];
     let req = symbolic.factorize_numeric_ldlt_scratch::<f64>(Par::Seq, Spec::default());
     let mut buf = MemBuffer::try_new(req).map_err(|_| FactorError::Internal("out of memory".into()))?;

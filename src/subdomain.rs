@@ -14,7 +14,9 @@
 
 use crate::decomposition::SubdomainDofs;
 use crate::error::{Error, Result};
-use crate::factor::{lower_csc, lower_diagonal, scan_pivots, sym_matvec, FactorError, SparseCholesky};
+use crate::factor::{
+    lower_csc, lower_diagonal, scan_pivots, sym_matvec, EliminationOrder, FactorError, SparseCholesky,
+};
 use crate::kernels;
 use crate::model::Model;
 use faer::sparse::SparseColMat;
@@ -92,21 +94,34 @@ impl SubdomainOperator {
             let (node, c) = model.dof_owner(sd.dofs[l]);
             format!("node {node} component {}", ["x", "y", "z"][c])
         };
-        Self::from_matrix(id, stiffness, max_rhs, None, &name)
+        Self::from_matrix(id, stiffness, max_rhs, None, Some(&sd.reference_rank()), &name)
     }
 
     /// Factors a given symmetric matrix (lower triangle, CSC). `kernel`, if
     /// given, is the caller's kernel basis: it must span the detected kernel
     /// (`K R ≈ 0`, same dimension) and replaces the computed one.
+    /// `reference`, if given, is the reference number of each local dof
+    /// (see [`EliminationOrder`]); `None` orders the matrix as numbered.
     /// `name` describes a local dof in error messages.
     pub fn from_matrix(
         id: usize,
         stiffness: SparseColMat<usize, f64>,
         max_rhs: usize,
         kernel: Option<&Mat<f64>>,
+        reference: Option<&[usize]>,
         name: &dyn Fn(usize) -> String,
     ) -> Result<SubdomainOperator> {
         let n = stiffness.nrows();
+        let identity: Vec<usize>;
+        let rank = match reference {
+            Some(r) => r,
+            None => {
+                identity = (0..n).collect();
+                &identity
+            }
+        };
+        let order = EliminationOrder::amd_in_reference(&stiffness, rank)
+            .map_err(|e| Error::Numerical(format!("subdomain {id}: {e:?}")))?;
         if let Some(r) = kernel {
             if r.nrows() != n {
                 return Err(Error::input(
@@ -116,7 +131,7 @@ impl SubdomainOperator {
                 ));
             }
         }
-        let mut op = Self::factor_matrix(id, stiffness, max_rhs, name)?;
+        let mut op = Self::factor_matrix(id, stiffness, &order, max_rhs, name)?;
         if let Some(r) = kernel {
             let q = orthonormal_columns(r, 1e-10);
             if q.ncols() != op.kernel_dim() {
@@ -154,11 +169,12 @@ impl SubdomainOperator {
     fn factor_matrix(
         id: usize,
         stiffness: SparseColMat<usize, f64>,
+        order: &EliminationOrder,
         max_rhs: usize,
         name: &dyn Fn(usize) -> String,
     ) -> Result<SubdomainOperator> {
         let n = stiffness.nrows();
-        match SparseCholesky::factor_checked(&stiffness, max_rhs, SUSPECT_PIVOT_RATIO) {
+        match SparseCholesky::factor_ordered(&stiffness, Some(order), max_rhs, SUSPECT_PIVOT_RATIO) {
             Ok(chol) => {
                 return Ok(SubdomainOperator {
                     id,
@@ -171,12 +187,13 @@ impl SubdomainOperator {
             Err(FactorError::Internal(m)) => return Err(Error::Numerical(format!("subdomain {id}: {m}"))),
             Err(FactorError::Pivot { .. }) => {}
         }
-        Self::singular(id, stiffness, max_rhs, name)
+        Self::singular(id, stiffness, order, max_rhs, name)
     }
 
     fn singular(
         id: usize,
         stiffness: SparseColMat<usize, f64>,
+        order: &EliminationOrder,
         max_rhs: usize,
         name: &dyn Fn(usize) -> String,
     ) -> Result<SubdomainOperator> {
@@ -188,7 +205,7 @@ impl SubdomainOperator {
                 name(dof)
             ),
         };
-        let scan = scan_pivots(&stiffness, SUSPECT_PIVOT_RATIO)
+        let scan = scan_pivots(&stiffness, Some(order), SUSPECT_PIVOT_RATIO)
             .map_err(|e| Error::Numerical(format!("subdomain {id}: {e:?}")))?;
         if let Some(&(dof, ratio)) = scan.negative.iter().find(|(_, r)| *r < -ROUNDOFF_NEGATIVE_PIVOT) {
             return Err(indefinite(dof, format!("indefinite (pivot ratio {ratio:.2e})")));
@@ -213,7 +230,7 @@ impl SubdomainOperator {
             return Err(too_many(fixing.len()));
         }
         let scale = diag_max(&stiffness);
-        let chol = factor_with_fixing(&stiffness, &mut fixing, scale, max_rhs, id, &indefinite)?;
+        let chol = factor_with_fixing(&stiffness, order, &mut fixing, scale, max_rhs, id, &indefinite)?;
         let mut op = SubdomainOperator {
             id,
             stiffness,
@@ -237,7 +254,7 @@ impl SubdomainOperator {
         if !soft.is_empty() {
             let mut fixing = std::mem::take(&mut op.fixing);
             fixing.retain(|f| !soft.contains(f));
-            op.chol = factor_with_fixing(&op.stiffness, &mut fixing, scale, max_rhs, id, &indefinite)?;
+            op.chol = factor_with_fixing(&op.stiffness, order, &mut fixing, scale, max_rhs, id, &indefinite)?;
             op.fixing = fixing;
             cols = op.fixed_kernel_columns();
         }
@@ -348,9 +365,12 @@ impl SubdomainOperator {
 
 /// Factors `K` with the fixing dofs decoupled; a pivot that still fails
 /// (round-off the scan kept) is fixed too, and the kernel check rejects it
-/// later if it was not a mechanism.
+/// later if it was not a mechanism. Decoupling keeps the pattern, so the
+/// subdomain's elimination order applies.
+#[allow(clippy::too_many_arguments)]
 fn factor_with_fixing(
     stiffness: &SparseColMat<usize, f64>,
+    order: &EliminationOrder,
     fixing: &mut Vec<usize>,
     scale: f64,
     max_rhs: usize,
@@ -359,7 +379,7 @@ fn factor_with_fixing(
 ) -> Result<SparseCholesky> {
     loop {
         let regular = decouple(stiffness, fixing, scale);
-        match SparseCholesky::factor_checked(&regular, max_rhs.max(fixing.len()), SUBDOMAIN_PIVOT_RATIO) {
+        match SparseCholesky::factor_ordered(&regular, Some(order), max_rhs.max(fixing.len()), SUBDOMAIN_PIVOT_RATIO) {
             Ok(c) => return Ok(c),
             Err(FactorError::Pivot { dof, .. }) if !fixing.contains(&dof) && fixing.len() < MAX_SUSPECTS => {
                 fixing.push(dof);
