@@ -6,15 +6,17 @@
 //! `m` subdomains (a cross point) appears in `m(m−1)/2` interfaces, with one
 //! force unknown per pair and dof (redundant multipliers). The global
 //! interface vector stores interfaces one after the other; entry `j` belongs
-//! to the pair `(lo, hi)` with `lo < hi`. `B_E` is never formed: it is the
-//! sign (+ for `lo`, − for `hi`) and the local dof of each entry.
+//! to the pair `(lo, hi)` with `lo < hi`; within an interface, the dofs
+//! only these two share come first, then its cross-point dofs, each group
+//! in increasing global order. `B_E` is never formed: it is the sign (+ for
+//! `lo`, − for `hi`) and the local dof of each entry.
 //!
 //! Local numbering: each subdomain numbers its interior dofs first (in
 //! increasing global order), then its interface dofs interface by interface,
-//! in the order of the global interface vector. An interface's entries then
-//! map to contiguous local dofs on both sides (except at cross points
-//! already numbered by an earlier interface), so the gather/scatter kernels
-//! run over long unit-stride runs. Factorizations do not see this layout:
+//! in the order of the global interface vector. An interface's own dofs
+//! then map to one contiguous block of local dofs on both sides, and so do
+//! its cross-point dofs unless an earlier interface numbered them: the
+//! gather/scatter kernels run over long unit-stride runs. Factorizations do not see this layout:
 //! they are ordered in the increasing-global reference numbering
 //! ([`SubdomainDofs::reference_rank`], `factor::EliminationOrder`).
 
@@ -152,13 +154,16 @@ impl Decomposition {
         for sd in subdomains.iter_mut() {
             sd.multiplicity = sd.dofs.iter().map(|&d| touch[d].len() as u32).collect();
         }
-        // Pair-dof entries, grouped by pair then dof: sorting makes the
-        // layout independent of hashing and thread count.
-        let mut pairs: Vec<(u32, u32, usize)> = Vec::new();
+        // Pair-dof entries, grouped by pair, then the pair's own dofs before
+        // its cross-point dofs (shared by more subdomains), then by dof:
+        // the own dofs then form one contiguous run on both sides (see
+        // `interface_layout`). Sorting makes the layout independent of
+        // hashing and thread count.
+        let mut pairs: Vec<(u32, u32, bool, usize)> = Vec::new();
         for (d, t) in touch.iter().enumerate() {
             for i in 0..t.len() {
                 for j in i + 1..t.len() {
-                    pairs.push((t[i], t[j], d));
+                    pairs.push((t[i], t[j], t.len() > 2, d));
                 }
             }
         }
@@ -172,7 +177,7 @@ impl Decomposition {
             let (lo, hi) = (pairs[k].0 as usize, pairs[k].1 as usize);
             let start = k;
             while k < pairs.len() && pairs[k].0 as usize == lo && pairs[k].1 as usize == hi {
-                let d = pairs[k].2;
+                let d = pairs[k].3;
                 entry_dof.push(d);
                 entry_lo_local.push(subdomains[lo].local(d).expect("dof of lo") as u32);
                 entry_hi_local.push(subdomains[hi].local(d).expect("dof of hi") as u32);
