@@ -11,7 +11,10 @@
 //!   subdomain, `SubdomainOperator::new`), `k = 1` column through
 //!   `solve_in_place` (the per-iteration path) and `k = 9, 27` columns
 //!   through `solve_columns` (the set-up path). Throughput is in elements =
-//!   columns, so criterion's elem/s is columns per second.
+//!   columns, so criterion's elem/s is columns per second. Each twice:
+//!   repeated on a cache-warm factor (`<n>dofs`), and after writing 64 MiB
+//!   so the factor comes from memory (`<n>dofs-cold`), as in the solver,
+//!   which streams every other subdomain's factor between two uses of one.
 //! - `dd_coarse`: `DdSolver::new` (factorizations, macro space, coarse
 //!   factorization, automatic `d`) with 16 subdomains (with 64 it takes
 //!   seconds: its one measured set-up time is printed, not benched), and
@@ -38,7 +41,7 @@
 use std::hint::black_box;
 use std::time::{Duration, Instant};
 
-use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, SamplingMode, Throughput};
+use criterion::{criterion_group, criterion_main, BatchSize, BenchmarkId, Criterion, SamplingMode, Throughput};
 use nsdd::dd::{DdOptions, DdSolver};
 use nsdd::direct::DirectSolver;
 use nsdd::generate::{grid, GridParams};
@@ -94,6 +97,18 @@ fn pseudo_random(n: usize) -> Vec<f64> {
         .collect()
 }
 
+/// Bytes written before a cold solve: twice the 32 MiB L3 of the machine
+/// the figures in BENCHMARKS.md come from.
+const EVICT_BYTES: usize = 64 << 20;
+
+fn solve_k(op: &mut SubdomainOperator, x: &mut [f64], k: usize) {
+    if k == 1 {
+        op.solve_in_place(black_box(x));
+    } else {
+        op.solve_columns(black_box(x), k);
+    }
+}
+
 fn subdomain_solve(c: &mut Criterion) {
     let mut g = c.benchmark_group("subdomain_solve");
     g.sampling_mode(SamplingMode::Flat);
@@ -104,6 +119,7 @@ fn subdomain_solve(c: &mut Criterion) {
         let mut op = SubdomainOperator::new(0, &model, &dec.subdomains[0], 64).unwrap();
         let dofs = op.n();
         eprintln!("subdomain_solve: n={n}: {dofs} dofs, nnz(L) = {}", op.nnz_l());
+        let mut evict = vec![0.0f64; EVICT_BYTES / 8];
         for k in [1usize, 9, 27] {
             let rhs = pseudo_random(dofs * k);
             let mut x = rhs.clone();
@@ -113,12 +129,22 @@ fn subdomain_solve(c: &mut Criterion) {
                     // Reset the right-hand side (an n·k copy, small against
                     // the solve) so repeated solves stay in range.
                     x.copy_from_slice(&rhs);
-                    if k == 1 {
-                        op.solve_in_place(black_box(&mut x));
-                    } else {
-                        op.solve_columns(black_box(&mut x), k);
-                    }
+                    solve_k(&mut op, &mut x, k);
                 })
+            });
+            // The same solve on a factor evicted from the caches, as in the
+            // solver, which streams every other subdomain's factor between
+            // two uses of one (the set-up is not timed).
+            g.bench_function(BenchmarkId::new(format!("{dofs}dofs-cold"), format!("k{k}")), |b| {
+                b.iter_batched_ref(
+                    || {
+                        evict.iter_mut().for_each(|v| *v += 1.0);
+                        black_box(&evict);
+                        rhs.clone()
+                    },
+                    |x| solve_k(&mut op, x, k),
+                    BatchSize::PerIteration,
+                )
             });
         }
     }
