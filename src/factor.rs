@@ -43,7 +43,8 @@ pub struct SparseCholesky {
     l_values: Vec<f64>,
     scratch: MemBuffer,
     scratch_cols: usize,
-    /// Seconds spent in the symbolic analysis (ordering) and numeric LLT.
+    /// Seconds spent in the symbolic analysis (with the AMD ordering unless
+    /// an [`EliminationOrder`] was given) and the numeric LLT.
     pub timings: FactorTimings,
 }
 
