@@ -16,9 +16,10 @@
 //! in the order of the global interface vector. An interface's own dofs
 //! then map to one contiguous block of local dofs on both sides, and so do
 //! its cross-point dofs unless an earlier interface numbered them: the
-//! gather/scatter kernels run over long unit-stride runs. Factorizations do not see this layout:
-//! they are ordered in the increasing-global reference numbering
-//! ([`SubdomainDofs::reference_rank`], `factor::EliminationOrder`).
+//! gather/scatter kernels run over long unit-stride runs. Factorizations
+//! do not see this layout: they are ordered in the increasing-global
+//! reference numbering ([`SubdomainDofs::reference_rank`],
+//! `factor::EliminationOrder`).
 
 use crate::model::{Model, FIXED};
 use crate::partition::Partition;
@@ -133,7 +134,9 @@ impl Decomposition {
     }
 
     /// Builds the interfaces from each subdomain's sorted global dof ids
-    /// (the algebraic entry point: dofs with equal ids are glued).
+    /// (the algebraic entry point: dofs with equal ids are glued). The
+    /// subdomains' local numbering is then the module's layout, not the
+    /// input order: map through `SubdomainDofs::dofs` / `by_global`.
     pub fn from_dof_sets(partition: Partition, dof_sets: Vec<Vec<usize>>, n_global: usize) -> Decomposition {
         let n_parts = dof_sets.len();
         // Subdomains touching each free dof, sorted and unique.
