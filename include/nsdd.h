@@ -461,13 +461,23 @@ enum NsddStatus nsdd_options_set_tolerance(struct NsddOptions *options, double t
 enum NsddStatus nsdd_options_set_max_iterations(struct NsddOptions *options, size_t max_iterations);
 
 /**
- * Sets the search direction `d` of the local stage; `d <= 0` selects the
- * automatic choice. NaN or infinity is INVALID_ARGUMENT.
+ * Sets the search direction `d` of the local stage (finite, > 0, as in a
+ * scene's `[solver]`); anything else is INVALID_ARGUMENT. The automatic
+ * choice is `nsdd_options_set_search_direction_auto`.
  *
  * # Safety
  * `options` must be a live options handle.
  */
 enum NsddStatus nsdd_options_set_search_direction(struct NsddOptions *options, double d);
+
+/**
+ * Selects the automatic search direction (the default): the lumped
+ * stiffness weights scaled to a fraction of the stability limit.
+ *
+ * # Safety
+ * `options` must be a live options handle.
+ */
+enum NsddStatus nsdd_options_set_search_direction_auto(struct NsddOptions *options);
 
 /**
  * Validates and solves the scene with `options` (NULL: the scene's own

@@ -7,7 +7,7 @@ use crate::dd::{DdOptions, DdSolver};
 use crate::direct::DirectSolver;
 use crate::error::Result;
 use crate::model::Model;
-use crate::scene::{Scene, SearchDirection};
+use crate::scene::{Method, Scene, SearchDirection, SolverSettings};
 use crate::solve::decompose;
 use serde::Serialize;
 use std::time::Instant;
@@ -97,18 +97,13 @@ pub fn dd_profile(scene: &Scene, subdomains: usize, iterations: usize) -> Result
     let t = Instant::now();
     let dec = decompose(&model, scene, subdomains)?;
     let partition_s = t.elapsed().as_secs_f64();
-    let mut dd = DdSolver::new(
-        &model,
-        &dec,
-        DdOptions {
-            coarse: true,
-            tolerance: 0.0,
-            max_iterations: 1,
-            search_direction: SearchDirection::Auto,
-            krylov: false,
-            preconditioner: Default::default(),
-        },
-    )?;
+    let settings = SolverSettings {
+        method: Method::Multilevel,
+        max_iterations: 1,
+        search_direction: SearchDirection::Auto,
+        ..SolverSettings::default()
+    };
+    let mut dd = DdSolver::new(&model, &dec, DdOptions::from_settings(&settings)?)?;
     let setup_s = t.elapsed().as_secs_f64();
     let f = model.load_cases[0].clone();
     let iterations = iterations.max(2);

@@ -747,15 +747,7 @@ pub unsafe extern "C" fn nsdd_scene_num_elements(scene: *const NsddScene, out: *
 // Solver options.
 
 fn default_options() -> SolveOptions {
-    let s = SolverSettings::default();
-    SolveOptions {
-        method: s.method,
-        subdomains: s.subdomains,
-        tolerance: s.tolerance,
-        max_iterations: s.max_iterations,
-        search_direction: s.search_direction,
-        preconditioner: s.preconditioner,
-    }
+    SolverSettings::default()
 }
 
 /// New solver options with the defaults of SCENE.md (direct, 1 subdomain,
@@ -901,8 +893,9 @@ pub unsafe extern "C" fn nsdd_options_set_max_iterations(
     })
 }
 
-/// Sets the search direction `d` of the local stage; `d <= 0` selects the
-/// automatic choice. NaN or infinity is INVALID_ARGUMENT.
+/// Sets the search direction `d` of the local stage (finite, > 0, as in a
+/// scene's `[solver]`); anything else is INVALID_ARGUMENT. The automatic
+/// choice is `nsdd_options_set_search_direction_auto`.
 ///
 /// # Safety
 /// `options` must be a live options handle.
@@ -910,14 +903,26 @@ pub unsafe extern "C" fn nsdd_options_set_max_iterations(
 pub unsafe extern "C" fn nsdd_options_set_search_direction(options: *mut NsddOptions, d: f64) -> NsddStatus {
     ffi_guard(|| {
         let o = unsafe { handle_mut(options, "options")? };
-        if !d.is_finite() {
-            return Err(invalid(format!("search direction must be finite, got {d}")));
+        if !(d > 0.0 && d.is_finite()) {
+            return Err(invalid(format!(
+                "search direction must be positive and finite, got {d} (automatic: nsdd_options_set_search_direction_auto)"
+            )));
         }
-        o.opts.search_direction = if d <= 0.0 {
-            SearchDirection::Auto
-        } else {
-            SearchDirection::Value(d)
-        };
+        o.opts.search_direction = SearchDirection::Value(d);
+        Ok(())
+    })
+}
+
+/// Selects the automatic search direction (the default): the lumped
+/// stiffness weights scaled to a fraction of the stability limit.
+///
+/// # Safety
+/// `options` must be a live options handle.
+#[unsafe(no_mangle)]
+pub unsafe extern "C" fn nsdd_options_set_search_direction_auto(options: *mut NsddOptions) -> NsddStatus {
+    ffi_guard(|| {
+        let o = unsafe { handle_mut(options, "options")? };
+        o.opts.search_direction = SearchDirection::Auto;
         Ok(())
     })
 }
@@ -1469,16 +1474,10 @@ pub unsafe extern "C" fn nsdd_alg_num_cables(alg: *const NsddAlgebraic, out: *mu
 
 fn alg_setup(h: &mut NsddAlgebraic, opts: &SolveOptions) -> FfiResult {
     h.setup = None;
-    let coarse = match opts.method {
-        Method::Direct => {
-            return Err(fail(
-                NsddStatus::MethodNotApplicable,
-                "method not applicable: the algebraic level runs monolevel, multilevel or cg, not direct",
-            ))
-        }
-        Method::Monolevel => false,
-        Method::Multilevel | Method::Cg => true,
-    };
+    // The one mapping of a method to its configuration (and the one
+    // validation of the settings); `direct` is refused here.
+    let dd_options = DdOptions::from_settings(opts)?;
+    let coarse = dd_options.coarse;
     let ns = h.subdomains.len();
     let mut subs = Vec::with_capacity(ns);
     for (s, sub) in h.subdomains.iter().enumerate() {
@@ -1619,17 +1618,7 @@ fn alg_setup(h: &mut NsddAlgebraic, opts: &SolveOptions) -> FfiResult {
         dof_points,
         n_cables: h.cables.len(),
     };
-    let solver = DdSolver::from_problem(
-        problem,
-        DdOptions {
-            coarse,
-            tolerance: opts.tolerance,
-            max_iterations: opts.max_iterations,
-            search_direction: opts.search_direction,
-            krylov: opts.method == Method::Cg,
-            preconditioner: opts.preconditioner,
-        },
-    )?;
+    let solver = DdSolver::from_problem(problem, dd_options)?;
     h.setup = Some(AlgSetup {
         decomposition: dec,
         solver: Box::new(solver),

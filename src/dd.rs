@@ -21,13 +21,14 @@ use crate::error::{Error, Result};
 use crate::kernels::{self, Run, Side};
 use crate::model::{Model, FIXED};
 use crate::result::HistoryEntry;
-use crate::scene::{Preconditioner, SearchDirection};
+use crate::settings::{MethodConfig, Preconditioner, SearchDirection, SolverSettings};
 use crate::subdomain::{InteriorProblem, SubdomainOperator};
 use faer::Mat;
 use rayon::prelude::*;
 use std::time::Instant;
 
-/// Settings of the iterative methods.
+/// Settings of the iterative methods: [`SolverSettings`] with the method
+/// already turned into its configuration ([`DdOptions::from_settings`]).
 #[derive(Debug, Clone)]
 pub struct DdOptions {
     /// With the macro space and coarse problem (multilevel) or without.
@@ -40,6 +41,28 @@ pub struct DdOptions {
     pub krylov: bool,
     /// Preconditioner of the CG (ignored by the stationary iteration).
     pub preconditioner: Preconditioner,
+}
+
+impl DdOptions {
+    /// The options of a domain-decomposition method from the settings
+    /// (validated here); the direct method is refused.
+    pub fn from_settings(s: &SolverSettings) -> Result<DdOptions> {
+        s.validate()?;
+        let MethodConfig { coarse, krylov } = s.method.config().ok_or_else(|| {
+            Error::MethodNotApplicable(format!(
+                "domain decomposition runs monolevel, multilevel or cg, not {}",
+                s.method.name()
+            ))
+        })?;
+        Ok(DdOptions {
+            coarse,
+            krylov,
+            tolerance: s.tolerance,
+            max_iterations: s.max_iterations,
+            search_direction: s.search_direction,
+            preconditioner: s.preconditioner,
+        })
+    }
 }
 
 /// Fraction of the stability limit `2 / λ_max` used by the automatic `d`.

@@ -19,6 +19,7 @@ pub mod partition;
 pub mod report;
 pub mod result;
 pub mod scene;
+pub mod settings;
 pub mod solve;
 pub mod subdomain;
 pub mod vtk;

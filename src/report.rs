@@ -18,7 +18,7 @@ use crate::decomposition::QualityReport;
 use crate::error::{Error, Result};
 use crate::model::Model;
 use crate::result::SolveResult;
-use crate::scene::{ElementKind, Method, Scene, SearchDirection};
+use crate::scene::{ElementKind, Method, Preconditioner, Scene, SearchDirection};
 use crate::solve::{decompose, solve_with_progress, SolveOptions};
 use crate::subdomain::SubdomainOperator;
 
@@ -365,6 +365,8 @@ pub struct AccuracyOptions {
     pub methods: Vec<Method>,
     pub max_iterations: usize,
     pub search_direction: SearchDirection,
+    /// Preconditioner of `cg` (the scene's).
+    pub preconditioner: Preconditioner,
     /// Also sample the true error along the iterations of the tightest run
     /// (costs one extra setup + partial solve per sample).
     pub history: bool,
@@ -386,6 +388,7 @@ impl AccuracyOptions {
             methods: ITERATIVE_METHODS.to_vec(),
             max_iterations: scene.solver.max_iterations,
             search_direction: scene.solver.search_direction,
+            preconditioner: scene.solver.preconditioner,
             history: true,
             history_samples: 24,
         }
@@ -480,6 +483,7 @@ fn method_options(
     tolerance: f64,
     max_iterations: usize,
     d: SearchDirection,
+    preconditioner: Preconditioner,
 ) -> SolveOptions {
     SolveOptions {
         method,
@@ -487,7 +491,7 @@ fn method_options(
         tolerance,
         max_iterations,
         search_direction: d,
-        preconditioner: Default::default(),
+        preconditioner,
     }
 }
 
@@ -545,6 +549,7 @@ pub fn accuracy(scene: &Scene, opts: &AccuracyOptions, mut obs: Observer<'_>) ->
         tols[tols.len() - 1],
         opts.max_iterations,
         opts.search_direction,
+        opts.preconditioner,
     );
     let reference = run_solve(scene, &dopts, &mut obs)?;
     let mut rows = vec![AccuracyRow {
@@ -568,7 +573,14 @@ pub fn accuracy(scene: &Scene, opts: &AccuracyOptions, mut obs: Observer<'_>) ->
         for (ti, &tol) in tols.iter().enumerate() {
             let label = format!("{name} tol {tol:e}");
             start(&mut obs, &label, 1 + mi * tols.len() + ti, runs);
-            let o = method_options(method, opts.subdomains, tol, opts.max_iterations, opts.search_direction);
+            let o = method_options(
+                method,
+                opts.subdomains,
+                tol,
+                opts.max_iterations,
+                opts.search_direction,
+                opts.preconditioner,
+            );
             match run_solve(scene, &o, &mut obs) {
                 Ok(r) => {
                     let e = compare(&r, &reference);
@@ -644,7 +656,14 @@ fn history_with_errors(
             } else {
                 let label = format!("{} history {}/{}", method.name(), i + 1, samples.len());
                 start(obs, &label, 0, 0);
-                let o = method_options(method, opts.subdomains, tol, k, opts.search_direction);
+                let o = method_options(
+                    method,
+                    opts.subdomains,
+                    tol,
+                    k,
+                    opts.search_direction,
+                    opts.preconditioner,
+                );
                 match run_solve(scene, &o, obs) {
                     Ok(rk) => compare(&rk, reference),
                     Err(_) => continue,
@@ -861,6 +880,7 @@ pub fn scaling(opts: &ScalingOptions, mut obs: Observer<'_>) -> Result<ScalingRe
                 opts.tolerance,
                 opts.max_iterations,
                 opts.search_direction,
+                scene.solver.preconditioner,
             );
             let reference = run_solve(&scene, &dopts, &mut obs)?;
             slot.insert((scene, reference, model.n_free, model.elements.len()));
@@ -906,7 +926,15 @@ pub fn scaling(opts: &ScalingOptions, mut obs: Observer<'_>) -> Result<ScalingRe
                 });
                 continue;
             }
-            let o = method_options(method, nsub, opts.tolerance, opts.max_iterations, opts.search_direction);
+            // The generated scene's own preconditioner (its `[solver]`).
+            let o = method_options(
+                method,
+                nsub,
+                opts.tolerance,
+                opts.max_iterations,
+                opts.search_direction,
+                scene.solver.preconditioner,
+            );
             let mut row = ScalingRow {
                 study: study.into(),
                 size,

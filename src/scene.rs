@@ -76,174 +76,7 @@ impl Effects {
     }
 }
 
-/// Solution method.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default, Hash)]
-#[serde(rename_all = "lowercase")]
-pub enum Method {
-    /// One sparse Cholesky of the whole structure, exact active set on cables.
-    #[default]
-    Direct,
-    /// The paper's iteration without the macro (coarse) space.
-    Monolevel,
-    /// The paper's iteration with the kernel-enriched macro space.
-    Multilevel,
-    /// Conjugate gradient on the interface problem with the same coarse
-    /// step (the paper's outlook; linear case only). An nsdd addition.
-    Cg,
-}
-
-impl Method {
-    pub fn name(&self) -> &'static str {
-        match self {
-            Method::Direct => "direct",
-            Method::Monolevel => "monolevel",
-            Method::Multilevel => "multilevel",
-            Method::Cg => "cg",
-        }
-    }
-}
-
-impl std::str::FromStr for Method {
-    type Err = String;
-    fn from_str(s: &str) -> std::result::Result<Self, String> {
-        match s {
-            "direct" => Ok(Method::Direct),
-            "monolevel" => Ok(Method::Monolevel),
-            "multilevel" => Ok(Method::Multilevel),
-            "cg" => Ok(Method::Cg),
-            _ => Err(format!(
-                "unknown method '{s}' (expected direct, monolevel, multilevel or cg)"
-            )),
-        }
-    }
-}
-
-/// Preconditioner of the interface CG (`method = "cg"`). An nsdd addition.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default, Hash)]
-#[serde(rename_all = "lowercase")]
-pub enum Preconditioner {
-    /// `Σ_E B_E S_E B_Eᵀ` with the Schur complement `S_E` of each
-    /// subdomain on its interface: one more (interior) solve per subdomain
-    /// and iteration and a second factorization, for 2–4× fewer iterations.
-    #[default]
-    Dirichlet,
-    /// `Σ_E B_E K_E B_Eᵀ`: the subdomain stiffness on its interface dofs
-    /// (the paper's lumped choice); no extra factorization.
-    Lumped,
-}
-
-impl Preconditioner {
-    pub fn name(&self) -> &'static str {
-        match self {
-            Preconditioner::Dirichlet => "dirichlet",
-            Preconditioner::Lumped => "lumped",
-        }
-    }
-}
-
-impl std::str::FromStr for Preconditioner {
-    type Err = String;
-    fn from_str(s: &str) -> std::result::Result<Self, String> {
-        match s {
-            "dirichlet" => Ok(Preconditioner::Dirichlet),
-            "lumped" => Ok(Preconditioner::Lumped),
-            _ => Err(format!("unknown preconditioner '{s}' (expected dirichlet or lumped)")),
-        }
-    }
-}
-
-/// The `d` of the local stage: `"auto"` or a positive number.
-#[derive(Debug, Clone, Copy, PartialEq, Default)]
-pub enum SearchDirection {
-    #[default]
-    Auto,
-    Value(f64),
-}
-
-impl Serialize for SearchDirection {
-    fn serialize<S: serde::Serializer>(&self, s: S) -> std::result::Result<S::Ok, S::Error> {
-        match self {
-            SearchDirection::Auto => s.serialize_str("auto"),
-            SearchDirection::Value(v) => s.serialize_f64(*v),
-        }
-    }
-}
-
-impl<'de> Deserialize<'de> for SearchDirection {
-    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> std::result::Result<Self, D::Error> {
-        #[derive(Deserialize)]
-        #[serde(untagged)]
-        enum Raw {
-            Num(f64),
-            Int(i64),
-            Str(String),
-        }
-        match Raw::deserialize(d)? {
-            Raw::Num(v) => Ok(SearchDirection::Value(v)),
-            Raw::Int(v) => Ok(SearchDirection::Value(v as f64)),
-            Raw::Str(s) if s == "auto" => Ok(SearchDirection::Auto),
-            Raw::Str(s) => s.parse::<f64>().map(SearchDirection::Value).map_err(|_| {
-                serde::de::Error::custom(format!(
-                    "solver.search_direction: expected \"auto\" or a number, got \"{s}\""
-                ))
-            }),
-        }
-    }
-}
-
-impl std::str::FromStr for SearchDirection {
-    type Err = String;
-    fn from_str(s: &str) -> std::result::Result<Self, String> {
-        if s == "auto" {
-            return Ok(SearchDirection::Auto);
-        }
-        s.parse::<f64>()
-            .map(SearchDirection::Value)
-            .map_err(|_| format!("search direction must be \"auto\" or a number, got '{s}'"))
-    }
-}
-
-/// `[solver]` settings. Command-line flags override them.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct SolverSettings {
-    #[serde(default)]
-    pub method: Method,
-    #[serde(default = "default_subdomains")]
-    pub subdomains: usize,
-    #[serde(default = "default_tolerance")]
-    pub tolerance: f64,
-    #[serde(default = "default_max_iterations")]
-    pub max_iterations: usize,
-    #[serde(default)]
-    pub search_direction: SearchDirection,
-    /// Preconditioner of `cg` (ignored by the other methods).
-    #[serde(default)]
-    pub preconditioner: Preconditioner,
-}
-
-fn default_subdomains() -> usize {
-    1
-}
-fn default_tolerance() -> f64 {
-    1e-8
-}
-fn default_max_iterations() -> usize {
-    20000
-}
-
-impl Default for SolverSettings {
-    fn default() -> Self {
-        SolverSettings {
-            method: Method::Direct,
-            subdomains: default_subdomains(),
-            tolerance: default_tolerance(),
-            max_iterations: default_max_iterations(),
-            search_direction: SearchDirection::Auto,
-            preconditioner: Preconditioner::default(),
-        }
-    }
-}
+pub use crate::settings::{Method, MethodConfig, Preconditioner, SearchDirection, SolverSettings};
 
 /// `[nodes]`: columnar coordinates.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
@@ -377,39 +210,6 @@ fn check_force_arrays(prefix: &str, node: &[usize], fx: &[f64], fy: &[f64], fz: 
     check_nodes(&format!("{prefix}.node"), node, n_nodes)
 }
 
-/// Checks solver settings, whether they come from a scene's `[solver]` or
-/// from options given in code.
-pub(crate) fn check_solver_values(
-    tolerance: f64,
-    subdomains: usize,
-    max_iterations: usize,
-    search_direction: SearchDirection,
-) -> Result<()> {
-    if !(tolerance > 0.0 && tolerance.is_finite()) {
-        return Err(Error::input(
-            "solver.tolerance",
-            None,
-            format!("must be positive, got {tolerance}"),
-        ));
-    }
-    if subdomains == 0 {
-        return Err(Error::input("solver.subdomains", None, "must be at least 1"));
-    }
-    if max_iterations == 0 {
-        return Err(Error::input("solver.max_iterations", None, "must be at least 1"));
-    }
-    if let SearchDirection::Value(d) = search_direction {
-        if !(d > 0.0 && d.is_finite()) {
-            return Err(Error::input(
-                "solver.search_direction",
-                None,
-                format!("must be positive, got {d}"),
-            ));
-        }
-    }
-    Ok(())
-}
-
 impl Scene {
     /// Checks every field; the error names the first bad field and index.
     /// Structural problems (mechanisms) are found later, by the model and
@@ -525,8 +325,7 @@ impl Scene {
                 }
             }
         }
-        let s = &self.solver;
-        check_solver_values(s.tolerance, s.subdomains, s.max_iterations, s.search_direction)
+        self.solver.validate()
     }
 
     /// Reads a scene from TOML text.

@@ -35,45 +35,13 @@ use crate::error::Result;
 use crate::model::Model;
 use crate::partition::Partition;
 use crate::result::{CaseResult, HistoryEntry, SolveResult, Timings};
-use crate::scene::{Method, Preconditioner, Scene, SearchDirection};
+use crate::scene::{Method, Scene};
+pub use crate::settings::SolverSettings;
 use std::time::Instant;
 
-/// Solver settings (the scene's `[solver]`, possibly overridden).
-#[derive(Debug, Clone)]
-pub struct SolveOptions {
-    pub method: Method,
-    pub subdomains: usize,
-    pub tolerance: f64,
-    pub max_iterations: usize,
-    pub search_direction: SearchDirection,
-    /// Preconditioner of `cg` (ignored by the other methods).
-    pub preconditioner: Preconditioner,
-}
-
-impl SolveOptions {
-    /// Checks the settings like the scene's `[solver]` section is checked.
-    pub fn validate(&self) -> Result<()> {
-        crate::scene::check_solver_values(
-            self.tolerance,
-            self.subdomains,
-            self.max_iterations,
-            self.search_direction,
-        )
-    }
-
-    /// The scene's own `[solver]` settings.
-    pub fn from_scene(scene: &Scene) -> SolveOptions {
-        let s = &scene.solver;
-        SolveOptions {
-            method: s.method,
-            subdomains: s.subdomains,
-            tolerance: s.tolerance,
-            max_iterations: s.max_iterations,
-            search_direction: s.search_direction,
-            preconditioner: s.preconditioner,
-        }
-    }
-}
+/// Solver settings (the scene's `[solver]`, possibly overridden): the one
+/// settings type of the crate, [`SolverSettings`], under its historical name.
+pub type SolveOptions = SolverSettings;
 
 /// A callback told `(iteration, indicator)` after every iteration.
 pub type Progress<'a> = Option<&'a mut dyn FnMut(usize, f64)>;
@@ -100,18 +68,7 @@ pub fn prepare(model: &Model, scene: &Scene, opts: &SolveOptions) -> Result<Prep
         Method::Direct => Prepared::Direct(Box::new(DirectSolver::new(model)?)),
         Method::Monolevel | Method::Multilevel | Method::Cg => {
             let dec = decompose(model, scene, opts.subdomains)?;
-            let dd = DdSolver::new(
-                model,
-                &dec,
-                DdOptions {
-                    coarse: opts.method != Method::Monolevel,
-                    krylov: opts.method == Method::Cg,
-                    preconditioner: opts.preconditioner,
-                    tolerance: opts.tolerance,
-                    max_iterations: opts.max_iterations,
-                    search_direction: opts.search_direction,
-                },
-            )?;
+            let dd = DdSolver::new(model, &dec, DdOptions::from_settings(opts)?)?;
             Prepared::Dd(Box::new(dd), dec)
         }
     })

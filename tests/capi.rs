@@ -536,7 +536,21 @@ fn options_reject_bad_values() {
             NsddStatus::InvalidArgument,
             "search direction",
         );
-        ok(nsdd_options_set_search_direction(o, 0.0)); // auto
+        // d <= 0 is an error, as in a scene's [solver] and on the command
+        // line; the automatic choice has its own call.
+        for d in [0.0, -1.0, f64::INFINITY] {
+            expect_err(
+                nsdd_options_set_search_direction(o, d),
+                NsddStatus::InvalidArgument,
+                "search direction",
+            );
+        }
+        expect_err(
+            nsdd_options_set_search_direction_auto(null_mut()),
+            NsddStatus::NullPointer,
+            "options",
+        );
+        ok(nsdd_options_set_search_direction_auto(o));
         ok(nsdd_options_set_search_direction(o, 0.5));
         let mut out = std::ptr::dangling_mut::<NsddOptions>();
         expect_err(
