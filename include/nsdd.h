@@ -565,6 +565,16 @@ enum NsddStatus nsdd_result_iterations(const struct NsddResult *result, size_t *
 enum NsddStatus nsdd_result_converged(const struct NsddResult *result, bool *out);
 
 /**
+ * Why the run stopped, as an `NsddStopReason` value, into `*out`: for
+ * an unconverged result, the first solve (load-path steps, the top level,
+ * the load cases) that did not converge says why.
+ *
+ * # Safety
+ * `result` must be a live result handle; `out` must point to a writable `uint32_t`.
+ */
+enum NsddStatus nsdd_result_stop_reason(const struct NsddResult *result, uint32_t *out);
+
+/**
  * Number of entries of the convergence history into `*out`.
  *
  * # Safety

@@ -20,6 +20,7 @@ use crate::dd::{CableColumn, DdOptions, DdProblem, DdSolver, SubdomainLoad, NO_D
 use crate::decomposition::Decomposition;
 use crate::error::Error;
 use crate::factor::lower_csc;
+use crate::outcome::Status;
 use crate::partition::Partition;
 use crate::result::SolveResult;
 use crate::scene::{ElementKind, Method, Nodes, Preconditioner, Scene, SearchDirection, SolverSettings};
@@ -91,6 +92,37 @@ pub enum NsddPreconditioner {
     Dirichlet = 0,
     /// The subdomain stiffness on its interface dofs; no extra factorization.
     Lumped = 1,
+}
+
+/// Why a solve stopped (`nsdd_result_stop_reason`).
+#[repr(C)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum NsddStopReason {
+    /// The stopping test passed (always, for the direct method).
+    Converged = 0,
+    /// The iteration limit ran out first.
+    IterationLimit = 1,
+    /// The method gave up before the limit: the indicator no longer
+    /// decreases (CG's restarts used up).
+    Stalled = 2,
+    /// The iterate grew without bound (`nsdd_solve` returns DIVERGED
+    /// instead of a result, so a result handle does not hold this value).
+    Diverged = 3,
+    /// The method could not continue (CG: a direction in the operator's
+    /// null space) short of the tolerance.
+    Breakdown = 4,
+}
+
+impl From<Status> for NsddStopReason {
+    fn from(s: Status) -> NsddStopReason {
+        match s {
+            Status::Converged => NsddStopReason::Converged,
+            Status::IterationLimit => NsddStopReason::IterationLimit,
+            Status::Stalled => NsddStopReason::Stalled,
+            Status::Diverged => NsddStopReason::Diverged,
+            Status::Breakdown => NsddStopReason::Breakdown,
+        }
+    }
 }
 
 /// Element kind (values of the `kind` array of `nsdd_scene_set_elements`).
@@ -954,6 +986,11 @@ pub unsafe extern "C" fn nsdd_solve(
             unsafe { handle(options, "options")? }.opts.clone()
         };
         let result = solve(&s.scene, &opts)?;
+        // Divergence stays an error status here, as before the outcome
+        // kept its history: no result handle for a diverged run.
+        if let Some(e) = result.divergence() {
+            return Err(e.into());
+        }
         unsafe { out_result.write(boxed(NsddResult { result })) };
         Ok(())
     })
@@ -1074,6 +1111,20 @@ pub unsafe extern "C" fn nsdd_result_converged(result: *const NsddResult, out: *
     ffi_guard(|| {
         let r = unsafe { handle(result, "result")? };
         unsafe { write_out(out, "out", r.result.converged) }
+    })
+}
+
+/// Why the run stopped, as an `NsddStopReason` value, into `*out`: for
+/// an unconverged result, the first solve (load-path steps, the top level,
+/// the load cases) that did not converge says why.
+///
+/// # Safety
+/// `result` must be a live result handle; `out` must point to a writable `uint32_t`.
+#[unsafe(no_mangle)]
+pub unsafe extern "C" fn nsdd_result_stop_reason(result: *const NsddResult, out: *mut u32) -> NsddStatus {
+    ffi_guard(|| {
+        let r = unsafe { handle(result, "result")? };
+        unsafe { write_out(out, "out", NsddStopReason::from(r.result.status) as u32) }
     })
 }
 
@@ -1684,13 +1735,18 @@ unsafe fn alg_write_outcome(
     out_iterations: *mut usize,
     out_converged: *mut bool,
 ) -> FfiResult {
+    // A diverged run keeps its status code (outputs are written only on
+    // success).
+    if let Some(e) = out.divergence() {
+        return Err(e.into());
+    }
     unsafe { slice_mut(out_u, h.n_global, "out_u")? }.copy_from_slice(&out.u);
     if !out_lambda.is_null() {
         unsafe { slice_mut(out_lambda, h.cables.len(), "out_lambda")? }.copy_from_slice(&out.lambda);
     }
     unsafe {
         write_opt(out_iterations, "out_iterations", out.iterations)?;
-        write_opt(out_converged, "out_converged", out.converged)?;
+        write_opt(out_converged, "out_converged", out.converged())?;
     }
     Ok(())
 }

@@ -20,6 +20,7 @@ use crate::decomposition::Decomposition;
 use crate::error::{Error, Result};
 use crate::kernels::{self, Run, Side};
 use crate::model::{Model, FIXED};
+use crate::outcome::{Outcome, Status};
 use crate::result::HistoryEntry;
 use crate::settings::{MethodConfig, Preconditioner, SearchDirection, SolverSettings};
 use crate::subdomain::{InteriorProblem, SubdomainOperator};
@@ -319,15 +320,8 @@ struct IfaceState {
     cg_p: Vec<f64>,
 }
 
-/// Result of one DD solve.
-#[derive(Debug, Clone)]
-pub struct DdOutcome {
-    pub u: Vec<f64>,
-    pub lambda: Vec<f64>,
-    pub converged: bool,
-    pub iterations: usize,
-    pub history: Vec<HistoryEntry>,
-}
+/// Result of one DD solve: the crate's one [`Outcome`].
+pub type DdOutcome = Outcome;
 
 /// Sizes of the set-up, for reports.
 #[derive(Debug, Clone, Default, serde::Serialize)]
@@ -880,6 +874,10 @@ impl DdSolver {
         let mut converged = false;
         let mut iterations = 0;
         let auto_d = matches!(self.opts.search_direction, SearchDirection::Auto);
+        // The step length of this solve: a halved automatic d stays here,
+        // the set-up's d is the same for every solve.
+        let mut d = self.d;
+        let mut ended: Option<(Status, String)> = None;
         let mut restarts = 0;
         // Iteration count at the last restart (history entries after it count).
         let mut restart_at = 0;
@@ -897,7 +895,7 @@ impl DdSolver {
         while !converged && iterations < self.opts.max_iterations {
             iterations += 1;
             // Local stage.
-            self.force_stage(self.d);
+            self.force_stage(d);
             if has_cables {
                 self.subs.par_iter_mut().for_each(|s| {
                     cable_elongations(s);
@@ -938,8 +936,7 @@ impl DdSolver {
                 // The automatic d rests on an estimate of λ_max from below;
                 // when it proves too large, halve it and start again.
                 restarts += 1;
-                self.d *= 0.5;
-                self.stats.search_direction = self.d;
+                d *= 0.5;
                 self.reset_unknowns();
                 self.global_step(has_cables);
                 self.compute_jumps();
@@ -948,19 +945,20 @@ impl DdSolver {
                 continue;
             }
             if !indicator.is_finite() || !v2.is_finite() {
-                return Err(Error::Diverged {
-                    iteration: iterations,
-                    message: "the iterate is no longer finite (NaN or Inf); lower the search direction d".into(),
-                });
+                ended = Some((
+                    Status::Diverged,
+                    "the iterate is no longer finite (NaN or Inf); lower the search direction d".into(),
+                ));
+                break;
             }
             if indicator > DIVERGENCE_GROWTH * best && iterations > restart_at + 10 {
-                return Err(Error::Diverged {
-                    iteration: iterations,
-                    message: format!(
-                        "the indicator grew from {best:.3e} to {indicator:.3e}; the search direction d = {:.3e} is too large",
-                        self.d
+                ended = Some((
+                    Status::Diverged,
+                    format!(
+                        "the indicator grew from {best:.3e} to {indicator:.3e}; the search direction d = {d:.3e} is too large"
                     ),
-                });
+                ));
+                break;
             }
             best = best.min(indicator);
             let recent = &history[history.len() - (iterations - restart_at)..];
@@ -968,12 +966,15 @@ impl DdSolver {
                 && (indicator * stopping_factor(recent) <= self.opts.tolerance || stalled(recent));
         }
         let (u, lambda) = self.assemble();
-        Ok(DdOutcome {
+        let (status, message) = ending(converged, ended);
+        Ok(Outcome {
             u,
             lambda,
-            converged,
+            status,
             iterations,
             history,
+            message,
+            search_direction: Some(d),
         })
     }
 
@@ -1127,6 +1128,8 @@ impl DdSolver {
         }
         let mut iterations = 0;
         let (mut best, mut restarts, mut restart_at) = (f64::INFINITY, 0, 0);
+        // How the loop ended when not by the stopping test or the limit.
+        let mut ended: Option<(Status, String)> = None;
         while !converged && iterations < self.opts.max_iterations {
             iterations += 1;
             // q = A p = −J V_hom(p): the homogeneous global step with F = p.
@@ -1148,10 +1151,8 @@ impl DdSolver {
                 // re-measured on the iterate deciding `converged`; only a
                 // non-finite value is an error.
                 if !rz.is_finite() || !pq.is_finite() {
-                    return Err(Error::Diverged {
-                        iteration: iterations,
-                        message: "the iterate is no longer finite (NaN or Inf)".into(),
-                    });
+                    ended = Some((Status::Diverged, "the iterate is no longer finite (NaN or Inf)".into()));
+                    break;
                 }
                 let indicator = self.cg_indicator(b_norm);
                 history.push(HistoryEntry {
@@ -1162,6 +1163,12 @@ impl DdSolver {
                     cable_change: None,
                 });
                 converged = indicator <= self.opts.tolerance;
+                if !converged {
+                    ended = Some((
+                        Status::Breakdown,
+                        format!("pᵀAp = {pq:.3e} <= 0: the search direction lies in the operator's null space"),
+                    ));
+                }
                 break;
             }
             let a = rz / pq;
@@ -1194,10 +1201,8 @@ impl DdSolver {
                 p(iterations, indicator);
             }
             if !indicator.is_finite() {
-                return Err(Error::Diverged {
-                    iteration: iterations,
-                    message: "the iterate is no longer finite (NaN or Inf)".into(),
-                });
+                ended = Some((Status::Diverged, "the iterate is no longer finite (NaN or Inf)".into()));
+                break;
             }
             // Below the tolerance, stop once the contraction-aware test
             // passes, or once restarts show the residual has reached the
@@ -1212,6 +1217,10 @@ impl DdSolver {
             }
             if indicator > CG_RESTART_GROWTH * best {
                 if restarts == CG_MAX_RESTARTS {
+                    ended = Some((
+                        Status::Stalled,
+                        format!("the residual grew again after {CG_MAX_RESTARTS} restarts from the true residual"),
+                    ));
                     break;
                 }
                 // The recurrences have drifted from the true operator (the
@@ -1239,12 +1248,15 @@ impl DdSolver {
             s.v.copy_from_slice(&s.cg_v);
         }
         let (u, lambda) = self.assemble();
-        Ok(DdOutcome {
+        let (status, message) = ending(converged, ended);
+        Ok(Outcome {
             u,
             lambda,
-            converged,
+            status,
             iterations,
             history,
+            message,
+            search_direction: None,
         })
     }
 
@@ -1434,6 +1446,16 @@ impl DdSolver {
             }
         }
         (u, lambda)
+    }
+}
+
+/// The status of a finished loop: converged, the reason it broke off, or
+/// the iteration limit.
+fn ending(converged: bool, ended: Option<(Status, String)>) -> (Status, Option<String>) {
+    match (converged, ended) {
+        (true, _) => (Status::Converged, None),
+        (false, Some((status, message))) => (status, Some(message)),
+        (false, None) => (Status::IterationLimit, None),
     }
 }
 

@@ -124,7 +124,7 @@ struct SolveArgs {
     /// Preconditioner of cg: dirichlet (default: interior solves, fewer iterations) or lumped
     #[arg(long, value_name = "P", value_parser = parse_preconditioner)]
     preconditioner: Option<Preconditioner>,
-    /// Write the result JSON here (only after a successful solve)
+    /// Write the result JSON here (also when not converged: its `status` says why; not after an error or divergence)
     #[arg(long, value_name = "FILE")]
     out: Option<PathBuf>,
     /// Write a ParaView .vtu here (with a load path: also one .vtu per step and a .pvd series)
@@ -458,6 +458,11 @@ fn cmd_solve(a: SolveArgs) -> Result<i32> {
         b.bar.finish_and_clear();
     }
     let result = result?;
+    // Divergence keeps its exit status and writes nothing, as before the
+    // result carried the diverged state.
+    if let Some(e) = result.divergence() {
+        return Err(e);
+    }
 
     let mut wrote = Vec::new();
     if let Some(path) = &a.vtk {
@@ -496,8 +501,19 @@ fn cmd_solve(a: SolveArgs) -> Result<i32> {
     }
     if !result.converged {
         eprintln!(
-            "error: not converged: {} iterations without reaching the tolerance {:e} (result written anyway)",
-            result.iterations, opts.tolerance
+            "error: not converged: {}, tolerance {:e}{}{}",
+            result.stop_summary(),
+            opts.tolerance,
+            result
+                .stop_message
+                .as_deref()
+                .map(|m| format!(": {m}"))
+                .unwrap_or_default(),
+            if a.out.is_some() || a.vtk.is_some() {
+                " (result written anyway)"
+            } else {
+                ""
+            }
         );
         return Ok(report::EXIT_NOT_CONVERGED);
     }

@@ -90,7 +90,11 @@ pub fn summary(scene: &Scene, r: &SolveResult) -> String {
     let _ = write!(
         s,
         "converged   {} ({} iteration{}",
-        if r.converged { "yes" } else { "NO" },
+        if r.converged {
+            "yes".to_string()
+        } else {
+            format!("NO, {}", r.status.describe())
+        },
         r.iterations,
         if r.iterations == 1 { "" } else { "s" }
     );

@@ -1,6 +1,8 @@
 //! The result format of SCENE.md (`--out result.json`). Field names are a
 //! public contract: add, never rename.
 
+use crate::error::Error;
+use crate::outcome::Status;
 use serde::{Deserialize, Serialize};
 
 /// One entry of the convergence history.
@@ -32,6 +34,9 @@ pub struct CaseResult {
     /// Load factor for a load-path step; 1 for a load case.
     pub load_factor: f64,
     pub converged: bool,
+    /// Why this solve stopped (`converged` is `status == "converged"`).
+    #[serde(default)]
+    pub status: Status,
     pub iterations: usize,
     pub displacements: Vec<[f64; 3]>,
     pub tensions: Vec<f64>,
@@ -46,6 +51,14 @@ pub struct SolveResult {
     pub effects: Vec<String>,
     pub stages: Vec<String>,
     pub converged: bool,
+    /// Why the run stopped: `converged`, `iteration_limit`, `stalled`,
+    /// `diverged` or `breakdown`, from the first solve (load-path steps,
+    /// the top level, the load cases) that did not converge.
+    #[serde(default)]
+    pub status: Status,
+    /// What went wrong, for a diverged or broken-down (or stalled) run.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stop_message: Option<String>,
     pub iterations: usize,
     pub subdomains: usize,
     pub displacements: Vec<[f64; 3]>,
@@ -71,6 +84,27 @@ pub struct SolveResult {
 }
 
 impl SolveResult {
+    /// The error of a diverged run, for callers that fail on it (the
+    /// command line's exit status, the C ABI's status code).
+    pub fn divergence(&self) -> Option<Error> {
+        (self.status == Status::Diverged).then(|| Error::Diverged {
+            iteration: self.history.last().map_or(self.iterations, |h| h.iteration),
+            message: self.stop_message.clone().unwrap_or_default(),
+        })
+    }
+
+    /// One line on why an unconverged run stopped, e.g. "stalled after 851
+    /// iterations (indicator 2.4e-5)".
+    pub fn stop_summary(&self) -> String {
+        let last = self.history.last().map_or(f64::NAN, |h| h.indicator);
+        format!(
+            "{} after {} iteration{} (indicator {last:.1e})",
+            self.status.describe(),
+            self.iterations,
+            if self.iterations == 1 { "" } else { "s" }
+        )
+    }
+
     /// Pretty JSON text.
     pub fn to_json(&self) -> String {
         serde_json::to_string_pretty(self).expect("result serialization cannot fail")

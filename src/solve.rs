@@ -30,9 +30,10 @@
 
 use crate::dd::{DdOptions, DdSolver};
 use crate::decomposition::Decomposition;
-use crate::direct::{DirectSolver, Equilibrium};
+use crate::direct::DirectSolver;
 use crate::error::Result;
 use crate::model::Model;
+use crate::outcome::{Outcome, Status};
 use crate::partition::Partition;
 use crate::result::{CaseResult, HistoryEntry, SolveResult, Timings};
 use crate::scene::{Method, Scene};
@@ -74,17 +75,12 @@ pub fn prepare(model: &Model, scene: &Scene, opts: &SolveOptions) -> Result<Prep
     })
 }
 
-/// One solved state.
-pub struct State {
-    pub equilibrium: Equilibrium,
-    pub converged: bool,
-    pub history: Vec<HistoryEntry>,
-}
-
 impl Prepared {
     /// Solves for external forces `f_ext` (free dofs). `warm` starts a DD
-    /// iteration from the previous state (load paths).
-    pub fn solve(&mut self, model: &Model, f_ext: &[f64], warm: bool, progress: Progress<'_>) -> Result<State> {
+    /// iteration from the previous state (load paths). Every ending is an
+    /// [`Outcome`] (a diverged run too, with its history); errors are
+    /// reserved for input the solver cannot take.
+    pub fn solve(&mut self, model: &Model, f_ext: &[f64], warm: bool, progress: Progress<'_>) -> Result<Outcome> {
         match self {
             Prepared::Direct(d) => {
                 let t = Instant::now();
@@ -97,24 +93,17 @@ impl Prepared {
                     jump: None,
                     cable_change: None,
                 }];
-                Ok(State {
-                    equilibrium: eq,
-                    converged: true,
+                Ok(Outcome {
+                    u: eq.u,
+                    lambda: eq.lambda,
+                    status: Status::Converged,
+                    iterations: eq.iterations,
                     history,
+                    message: None,
+                    search_direction: None,
                 })
             }
-            Prepared::Dd(dd, _) => {
-                let out = dd.solve(f_ext, warm, progress)?;
-                Ok(State {
-                    equilibrium: Equilibrium {
-                        u: out.u,
-                        lambda: out.lambda,
-                        iterations: out.iterations,
-                    },
-                    converged: out.converged,
-                    history: out.history,
-                })
-            }
+            Prepared::Dd(dd, _) => dd.solve(f_ext, warm, progress),
         }
     }
 
@@ -159,16 +148,16 @@ fn slack_threshold(opts: &SolveOptions) -> f64 {
     }
 }
 
-fn case_result(model: &Model, name: &str, load_factor: f64, st: &State, slack_rel: f64) -> CaseResult {
-    let eq = &st.equilibrium;
-    let slack = model.slack_flags(&eq.u, &eq.lambda, slack_rel);
+fn case_result(model: &Model, name: &str, load_factor: f64, st: &Outcome, slack_rel: f64) -> CaseResult {
+    let slack = model.slack_flags(&st.u, &st.lambda, slack_rel);
     CaseResult {
         name: name.to_string(),
         load_factor,
-        converged: st.converged,
-        iterations: eq.iterations,
-        displacements: model.node_displacements(&eq.u),
-        tensions: model.tensions_with_slack(&eq.u, &slack),
+        converged: st.converged(),
+        status: st.status,
+        iterations: st.iterations,
+        displacements: model.node_displacements(&st.u),
+        tensions: model.tensions_with_slack(&st.u, &slack),
         slack,
     }
 }
@@ -189,7 +178,11 @@ pub fn solve_with_progress(scene: &Scene, opts: &SolveOptions, mut progress: Pro
     let t_solve = Instant::now();
 
     let mut steps = Vec::new();
-    let mut top: Option<State> = None;
+    let mut top: Option<Outcome> = None;
+    // A diverged solve ends the run: later steps and cases are not tried,
+    // and the result carries the diverged state with its history.
+    let mut diverged = false;
+    let mut step_status = Vec::new();
     if let Some(path) = &scene.load_path {
         for k in 1..=path.steps {
             let factor = path.final_factor * k as f64 / path.steps as f64;
@@ -207,14 +200,27 @@ pub fn solve_with_progress(scene: &Scene, opts: &SolveOptions, mut progress: Pro
                 &st,
                 slack_threshold(opts),
             ));
+            diverged = st.status == Status::Diverged;
+            step_status.push((st.status, st.message.clone()));
             top = Some(st);
+            if diverged {
+                break;
+            }
         }
     } else {
-        top = Some(prepared.solve(&model, &model.load_cases[0], false, progress)?);
+        let st = prepared.solve(&model, &model.load_cases[0], false, progress)?;
+        diverged = st.status == Status::Diverged;
+        top = Some(st);
     }
     let mut load_cases = Vec::new();
+    let mut case_status = Vec::new();
     for c in 1..model.load_cases.len() {
+        if diverged {
+            break;
+        }
         let st = prepared.solve(&model, &model.load_cases[c], false, None)?;
+        diverged = st.status == Status::Diverged;
+        case_status.push((st.status, st.message.clone(), st.iterations));
         load_cases.push(case_result(
             &model,
             &model.load_case_names[c],
@@ -225,15 +231,21 @@ pub fn solve_with_progress(scene: &Scene, opts: &SolveOptions, mut progress: Pro
     }
     let top = top.expect("at least one solve");
     let main = case_result(&model, "loads", 1.0, &top, slack_threshold(opts));
-    let (n_sub, element_subdomain, d) = match &prepared {
-        Prepared::Direct(_) => (1, Vec::new(), None),
-        // CG has no step length `d`: only the stationary iteration reports one.
-        Prepared::Dd(dd, dec) => (
-            dec.len(),
-            dec.partition.part_of.clone(),
-            (opts.method != Method::Cg).then(|| dd.search_direction()),
-        ),
+    let (n_sub, element_subdomain) = match &prepared {
+        Prepared::Direct(_) => (1, Vec::new()),
+        Prepared::Dd(_, dec) => (dec.len(), dec.partition.part_of.clone()),
     };
+    // The `d` the top solve ended with (a halved automatic d included); CG
+    // has no step length: only the stationary iteration reports one.
+    let d = top.search_direction;
+    // Why the run stopped: the first solve, in order (steps, the top
+    // level, the load cases), that did not converge.
+    let (status, stop_message) = step_status
+        .into_iter()
+        .chain(std::iter::once((top.status, top.message.clone())))
+        .chain(case_status.into_iter().map(|(s, m, _)| (s, m)))
+        .find(|(s, _)| !s.is_converged())
+        .unwrap_or((Status::Converged, None));
     let mut notes = model.notes.clone();
     if let Prepared::Dd(dd, _) = &prepared {
         if let Some(r) = dd.coarse_residual().filter(|r| !(*r <= COARSE_RESIDUAL_NOTE)) {
@@ -248,8 +260,10 @@ pub fn solve_with_progress(scene: &Scene, opts: &SolveOptions, mut progress: Pro
         method: opts.method.name().to_string(),
         effects: model.effects.names().into_iter().map(String::from).collect(),
         stages: prepared.stages(&model),
-        converged: top.converged && steps.iter().all(|s| s.converged) && load_cases.iter().all(|s| s.converged),
-        iterations: top.equilibrium.iterations,
+        converged: status.is_converged(),
+        status,
+        stop_message,
+        iterations: top.iterations,
         subdomains: n_sub,
         displacements: main.displacements,
         tensions: main.tensions,

@@ -922,7 +922,7 @@ fn algebraic_results_match_rust_api_bit_for_bit() {
     let mut rust = DdSolver::new(&model, &dec, opts.clone()).unwrap();
     let f = &model.load_cases[0];
     let want = rust.solve(f, false, None).unwrap();
-    assert!(want.converged && want.lambda.iter().any(|&l| l > 0.0));
+    assert!(want.converged() && want.lambda.iter().any(|&l| l > 0.0));
     // Local right-hand sides exactly as DdSolver::solve forms them.
     let problem = DdProblem::from_model(&model, &dec).unwrap();
     let rhs: Vec<Vec<f64>> = dec
@@ -964,7 +964,7 @@ fn algebraic_results_match_rust_api_bit_for_bit() {
             ));
             assert_eq!(bits(&u), bits(&want.u));
             assert_eq!(bits(&lambda), bits(&want.lambda));
-            assert_eq!((it, conv), (want.iterations, want.converged));
+            assert_eq!((it, conv), (want.iterations, want.converged()));
         }
         nsdd_options_destroy(o);
         nsdd_alg_destroy(h);
@@ -1578,4 +1578,62 @@ fn c_examples() {
         .status()
         .expect("run make");
     assert!(status.success(), "make -C c_examples run failed");
+}
+
+/// `nsdd_result_stop_reason` names why a run stopped: the README's tower
+/// with cg on 4 subdomains stalls before its limit, a limit of 3 runs out,
+/// the direct method converges; the value matches the Rust result.
+#[test]
+fn result_stop_reason() {
+    let scene = nsdd::generate::tower(&nsdd::generate::TowerParams {
+        nx: 2,
+        ny: 2,
+        nz: 10,
+        unilateral: false,
+        ..Default::default()
+    });
+    let text = cstr(&scene.to_toml_string().unwrap());
+    unsafe {
+        let mut s = null_mut();
+        ok(nsdd_scene_from_str(text.as_ptr(), false, &mut s));
+        let o = nsdd_options_new();
+        ok(nsdd_options_set_method(o, NsddMethod::Cg as u32));
+        ok(nsdd_options_set_subdomains(o, 4));
+        let reason = |o: *const NsddOptions| {
+            let mut r = null_mut();
+            ok(nsdd_solve(s, o, &mut r));
+            let mut why = u32::MAX;
+            ok(nsdd_result_stop_reason(r, &mut why));
+            let (mut conv, mut it) = (true, 0usize);
+            ok(nsdd_result_converged(r, &mut conv));
+            ok(nsdd_result_iterations(r, &mut it));
+            expect_err(nsdd_result_stop_reason(r, null_mut()), NsddStatus::NullPointer, "out");
+            nsdd_result_destroy(r);
+            (why, conv, it)
+        };
+        let (why, conv, it) = reason(o);
+        assert_eq!(why, NsddStopReason::Stalled as u32);
+        assert!(!conv && it < 20000, "{it}");
+        let mut rust_opts = SolveOptions::from_scene(&scene);
+        rust_opts.method = Method::Cg;
+        rust_opts.subdomains = 4;
+        let rust = solve(&scene, &rust_opts).unwrap();
+        assert_eq!(rust.status, nsdd::outcome::Status::Stalled);
+        assert_eq!(rust.iterations, it);
+
+        ok(nsdd_options_set_max_iterations(o, 3));
+        let (why, conv, it) = reason(o);
+        assert_eq!((why, conv, it), (NsddStopReason::IterationLimit as u32, false, 3));
+
+        ok(nsdd_options_set_method(o, NsddMethod::Direct as u32));
+        let (why, conv, _) = reason(o);
+        assert_eq!((why, conv), (NsddStopReason::Converged as u32, true));
+        expect_err(
+            nsdd_result_stop_reason(null(), &mut 0u32),
+            NsddStatus::NullPointer,
+            "result",
+        );
+        nsdd_options_destroy(o);
+        nsdd_scene_destroy(s);
+    }
 }

@@ -301,6 +301,62 @@ fn unconverged_solve_writes_result_and_exits_5() {
     assert_eq!(r["iterations"], 3);
 }
 
+/// The README's tower with cg on 4 subdomains gives up (stalled) long
+/// before its iteration limit; the result and the message say why, and a
+/// tiny limit is reported as such.
+#[test]
+fn unconverged_solve_names_its_stop_reason() {
+    let d = tmp("stop-reason");
+    let tower = d.join("tower.toml");
+    ok(&nsdd(&[
+        "gen",
+        "tower",
+        "nx=2",
+        "ny=2",
+        "nz=10",
+        "unilateral=false",
+        "--out",
+        s(&tower),
+    ]));
+    let base = ["solve", s(&tower), "--method", "cg", "--subdomains", "4"];
+    let res = d.join("r.json");
+    let out = nsdd(&[&base[..], &["--out", s(&res)]].concat());
+    assert_eq!(out.status.code(), Some(5));
+    let err = text(&out.stderr);
+    assert!(err.contains("not converged: stalled after"), "{err}");
+    assert!(err.contains("(result written anyway)"), "{err}");
+    let r = read_json(&res);
+    assert_eq!(r["converged"], false);
+    assert_eq!(r["status"], "stalled");
+    let it = r["iterations"].as_u64().unwrap();
+    assert!(it < 20000, "gave up before the limit: {it}");
+    assert!(text(&out.stdout).contains("NO, stalled"));
+
+    // Without --out nothing is written, and the message does not claim it.
+    let out = nsdd(&base);
+    assert_eq!(out.status.code(), Some(5));
+    let err = text(&out.stderr);
+    assert!(err.contains("stalled after"), "{err}");
+    assert!(!err.contains("written"), "{err}");
+
+    let res = d.join("r3.json");
+    let out = nsdd(&[&base[..], &["--max-iterations", "3", "--out", s(&res)]].concat());
+    assert_eq!(out.status.code(), Some(5));
+    assert!(
+        text(&out.stderr).contains("iteration limit reached after 3 iterations"),
+        "{}",
+        text(&out.stderr)
+    );
+    let r = read_json(&res);
+    assert_eq!(r["status"], "iteration_limit");
+    assert_eq!(r["iterations"], 3);
+
+    // A converged run says so too.
+    let res = d.join("ok.json");
+    ok(&nsdd(&["solve", s(&tower), "--out", s(&res)]));
+    assert_eq!(read_json(&res)["status"], "converged");
+}
+
 #[test]
 fn gen_round_trip_and_help() {
     let d = tmp("gen");

@@ -197,7 +197,10 @@ fn check(truss: &Truss, tally: &RefCell<Tally>) -> Result<(), TestCaseError> {
     let mut o = opts(Method::Multilevel, 1, TOL);
     o.max_iterations = MAX_ITERATIONS;
     let n_sub = scene.elements.subdomain.iter().max().unwrap() + 1;
-    match solve(&scene, &o) {
+    match solve(&scene, &o).and_then(|r| match r.divergence() {
+        Some(e) => Err(e),
+        None => Ok(r),
+    }) {
         Ok(r) => {
             for v in r.displacements.iter().flatten().chain(&r.tensions) {
                 prop_assert!(v.is_finite(), "non-finite result");

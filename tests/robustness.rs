@@ -17,6 +17,7 @@ use nsdd::dd::{DdOptions, DdSolver};
 use nsdd::error::Error;
 use nsdd::generate::{grid, tensegrity, GridParams, TensegrityParams};
 use nsdd::model::Model;
+use nsdd::outcome::Status;
 use nsdd::result::SolveResult;
 use nsdd::scene::{Effects, Method, Scene, SceneBuilder, SearchDirection};
 use nsdd::solve::{decompose, solve, SolveOptions};
@@ -248,7 +249,10 @@ fn stiffness_contrast_multilevel() {
         let scene = contrast_grid(4, contrast);
         let d = direct(&scene);
         let tol = 1e-8;
-        match solve(&scene, &with_iters(opts(Method::Multilevel, 4, tol), 20_000)) {
+        match solve(&scene, &with_iters(opts(Method::Multilevel, 4, tol), 20_000)).and_then(|r| match r.divergence() {
+            Some(e) => Err(e),
+            None => Ok(r),
+        }) {
             Ok(r) => {
                 assert_finite(&r, "multilevel");
                 let eu = rel_err(&flat(&r.displacements), &flat(&d.displacements));
@@ -671,7 +675,10 @@ fn tiny_stiffness_brace_matches_analytic() {
         let mut split = scene.clone();
         split.elements.subdomain = vec![0, 0, 1, 1];
         for method in [Method::Multilevel, Method::Cg] {
-            match solve(&split, &with_iters(opts(method, 2, 1e-10), 20_000)) {
+            match solve(&split, &with_iters(opts(method, 2, 1e-10), 20_000)).and_then(|r| match r.divergence() {
+                Some(e) => Err(e),
+                None => Ok(r),
+            }) {
                 Ok(m) => {
                     assert_finite(&m, "multilevel");
                     let eu = rel_err(&flat(&m.displacements), &flat(&r.displacements));
@@ -819,7 +826,7 @@ fn resolving_reuses_factorizations_bit_identically() {
     let mut dd = DdSolver::new(&model, &dec, o.clone()).unwrap();
     let f = model.load_cases[0].clone();
     let first = dd.solve(&f, false, None).unwrap();
-    assert!(first.converged);
+    assert!(first.converged());
     for factor in [-2.0, 0.0, 5.0] {
         let g: Vec<f64> = f
             .iter()
@@ -1017,9 +1024,13 @@ fn divergence_is_reported_not_looped() {
         let mut o = opts(Method::Multilevel, 8, 1e-10);
         o.search_direction = SearchDirection::Value(1e6);
         match solve(&scene, &o) {
-            Err(Error::Diverged { iteration, message }) => {
+            Ok(r) if r.status == Status::Diverged => {
+                let Some(Error::Diverged { iteration, message }) = r.divergence() else {
+                    panic!("a diverged result names its divergence")
+                };
                 assert!((1..1000).contains(&iteration), "{iteration}");
                 assert!(message.contains('d'), "{message}");
+                assert_eq!(r.history.len(), iteration, "the history is kept");
             }
             other => panic!("expected divergence, got {other:?}"),
         }
