@@ -55,6 +55,9 @@ static void solve_truss(NsddScene *scene, const NsddOptions *opts, double fy, do
     check_status(nsdd_result_num_elements(res, &ne), "nsdd_result_num_elements");
     check_status(nsdd_result_iterations(res, &iters), "nsdd_result_iterations");
     check_status(nsdd_result_converged(res, &converged), "nsdd_result_converged");
+    uint32_t why = 0;
+    check_status(nsdd_result_stop_reason(res, &why), "nsdd_result_stop_reason");
+    if ((why == NSDD_STOP_REASON_CONVERGED) != converged) failures++;
     double *u = malloc(3 * nn * sizeof(double));
     check_status(nsdd_result_displacements(res, u, 3 * nn), "nsdd_result_displacements");
     check_status(nsdd_result_tensions(res, t, ne), "nsdd_result_tensions");

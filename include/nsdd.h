@@ -181,6 +181,35 @@ typedef enum NsddStatus {
 } NsddStatus;
 
 /**
+ * Why a solve stopped (`nsdd_result_stop_reason`).
+ */
+typedef enum NsddStopReason {
+    /**
+     * The stopping test passed (always, for the direct method).
+     */
+    NSDD_STOP_REASON_CONVERGED = 0,
+    /**
+     * The iteration limit ran out first.
+     */
+    NSDD_STOP_REASON_ITERATION_LIMIT = 1,
+    /**
+     * The method gave up before the limit: the indicator no longer
+     * decreases (CG's restarts used up).
+     */
+    NSDD_STOP_REASON_STALLED = 2,
+    /**
+     * The iterate grew without bound (`nsdd_solve` returns DIVERGED
+     * instead of a result, so a result handle does not hold this value).
+     */
+    NSDD_STOP_REASON_DIVERGED = 3,
+    /**
+     * The method could not continue (CG: a direction in the operator's
+     * null space) short of the tolerance.
+     */
+    NSDD_STOP_REASON_BREAKDOWN = 4,
+} NsddStopReason;
+
+/**
  * An algebraic domain-decomposition problem assembled by the caller
  * (subdomain matrices in CSR, local-to-global maps, cables), set up once
  * and solved for any number of right-hand sides.
