@@ -249,6 +249,50 @@ fn bad_scene_fails_naming_field_and_index_without_output() {
     assert!(!res.exists());
 }
 
+/// Issue #20: three nodes in the x–z plane, node 1 held by two bars and so
+/// free along y. The direct solver printed "component z" (the component
+/// after the free one) and the multilevel one named no node at all.
+#[test]
+fn mechanism_message_names_the_free_node_and_component() {
+    let d = tmp("mech-xz");
+    let scene = d.join("xz.toml");
+    std::fs::write(
+        &scene,
+        r#"[nodes]
+x = [0.0, 1.0, 2.0]
+y = [0.0, 0.0, 0.0]
+z = [0.0, 1.0, 0.0]
+[elements]
+a = [0, 1]
+b = [1, 2]
+kind = ["bar", "bar"]
+ea = [100.0, 100.0]
+[supports]
+node = [0, 2]
+dofs = ["xyz", "xyz"]
+[loads]
+node = [1]
+fz = [-1.0]
+"#,
+    )
+    .unwrap();
+    for (method, subdomains, want) in [
+        ("direct", "1", "no stiffness at node 1 component y"),
+        ("multilevel", "1", "largest at node 1, component y"),
+        (
+            "multilevel",
+            "2",
+            "subdomain 0 is not restrained by its interfaces (largest motion at node 1, component y)",
+        ),
+        ("cg", "2", "(largest motion at node 1, component y)"),
+    ] {
+        let out = nsdd(&["solve", s(&scene), "--method", method, "--subdomains", subdomains]);
+        assert_eq!(out.status.code(), Some(3), "{method}: {}", text(&out.stderr));
+        let err = text(&out.stderr);
+        assert!(err.contains(want), "{method} on {subdomains}: {err}");
+    }
+}
+
 #[test]
 fn unsupported_structure_fails_naming_the_cause() {
     let d = tmp("mech");
