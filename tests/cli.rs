@@ -31,7 +31,7 @@ fn root() -> PathBuf {
 }
 
 fn reference_dir() -> PathBuf {
-    root().join("../shared/reference")
+    root().join("tests/data/reference")
 }
 
 fn s(p: &Path) -> &str {
