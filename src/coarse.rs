@@ -232,6 +232,19 @@ impl CoarseProblem {
         parts: &[CoarseContribution],
         kernel_owner: &[usize],
     ) -> Result<CoarseProblem> {
+        Self::new_described(n_macro, n_kernel, parts, kernel_owner, &|_| String::new())
+    }
+
+    /// [`CoarseProblem::new`] whose mechanism message ends with
+    /// `describe(α)`, `α` the kernel coefficients of the unrestrained mode
+    /// (the caller knows the kernel bases and can say where it moves).
+    pub fn new_described(
+        n_macro: usize,
+        n_kernel: usize,
+        parts: &[CoarseContribution],
+        kernel_owner: &[usize],
+        describe: &dyn Fn(&[f64]) -> String,
+    ) -> Result<CoarseProblem> {
         let t0 = std::time::Instant::now();
         let nf = n_macro;
         let na = n_kernel;
@@ -271,7 +284,7 @@ impl CoarseProblem {
         }
         drop(g_cols);
         if na > 0 {
-            check_full_rank(na, &g_ptr, &g_row, &g_val, nf, kernel_owner)?;
+            check_full_rank(na, &g_ptr, &g_row, &g_val, nf, kernel_owner, describe)?;
         }
 
         // Exact L (symmetrised) and the augmented, regularised L_γ.
@@ -709,7 +722,15 @@ fn gemv(a: &Mat<f64>, x: &[f64], y: &mut [f64]) {
 /// Fails with a named subdomain when `G` has a (numerically) dependent
 /// column. `GᵀG` is formed row by row of `G`: a row holds the kernel modes
 /// of the two subdomains of one interface only.
-fn check_full_rank(na: usize, ptr: &[usize], row: &[usize], val: &[f64], nf: usize, owner: &[usize]) -> Result<()> {
+fn check_full_rank(
+    na: usize,
+    ptr: &[usize],
+    row: &[usize],
+    val: &[f64],
+    nf: usize,
+    owner: &[usize],
+    describe: &dyn Fn(&[f64]) -> String,
+) -> Result<()> {
     let mut rows: Vec<Vec<(usize, f64)>> = vec![Vec::new(); nf];
     for j in 0..na {
         for k in ptr[j]..ptr[j + 1] {
@@ -732,9 +753,11 @@ fn check_full_rank(na: usize, ptr: &[usize], row: &[usize], val: &[f64], nf: usi
     if s[0] <= 1e-12 * smax.max(f64::MIN_POSITIVE) || smax == 0.0 {
         let u = eig.U();
         let worst = (0..na).fold(0, |b, i| if u[(i, 0)].abs() > u[(b, 0)].abs() { i } else { b });
+        let alpha: Vec<f64> = (0..na).map(|i| u[(i, 0)]).collect();
         return Err(Error::Mechanism(format!(
-            "a rigid-body or mechanism mode of subdomain {} is not restrained by its interfaces: the structure is not supported well enough or is a mechanism",
-            owner.get(worst).copied().unwrap_or(0)
+            "a rigid-body or mechanism mode of subdomain {} is not restrained by its interfaces{}: the structure is not supported well enough or is a mechanism",
+            owner.get(worst).copied().unwrap_or(0),
+            describe(&alpha)
         )));
     }
     Ok(())

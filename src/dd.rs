@@ -357,6 +357,24 @@ pub struct DdSolver {
     stats: DdStats,
 }
 
+/// The global dof that moves most in the mode `Σ_E R_E α_E`, given per
+/// subdomain as (kernel basis `R_E`, global dof of each local dof, `α_E`):
+/// where a mechanism message points the user. On an interface the
+/// subdomains' motions differ (the mode is not restrained there); the
+/// largest one is taken.
+fn largest_motion(modes: &[(&Mat<f64>, &[usize], &[f64])]) -> Option<usize> {
+    let mut best: Option<(f64, usize)> = None;
+    for &(r, dofs, alpha) in modes {
+        for (l, &d) in dofs.iter().enumerate().take(r.nrows()) {
+            let v: f64 = alpha.iter().enumerate().map(|(j, a)| r[(l, j)] * a).sum::<f64>().abs();
+            if best.is_none_or(|(b, _)| v > b) {
+                best = Some((v, d));
+            }
+        }
+    }
+    best.filter(|&(v, _)| v > 0.0).map(|(_, d)| d)
+}
+
 impl DdSolver {
     /// Sets up a truss model: factors every subdomain, builds the macro
     /// basis and the coarse problem (multilevel), and picks `d`.
@@ -364,7 +382,11 @@ impl DdSolver {
         let t0 = Instant::now();
         let problem = DdProblem::from_model(model, dec)?;
         let factor_s = t0.elapsed().as_secs_f64();
-        let mut solver = DdSolver::from_problem(problem, opts)?;
+        let name_dof = |d: usize| {
+            let (node, c) = model.dof_owner(d);
+            format!("node {node}, component {}", ["x", "y", "z"][c])
+        };
+        let mut solver = DdSolver::from_problem_named(problem, opts, &name_dof)?;
         solver.stats.setup_s = t0.elapsed().as_secs_f64();
         solver.stats.factor_s = factor_s;
         Ok(solver)
@@ -372,6 +394,16 @@ impl DdSolver {
 
     /// Sets up an algebraic problem (already factored operators).
     pub fn from_problem(problem: DdProblem<'_>, opts: DdOptions) -> Result<DdSolver> {
+        Self::from_problem_named(problem, opts, &|d| format!("global dof {d}"))
+    }
+
+    /// [`DdSolver::from_problem`]; a mechanism message names the dof that
+    /// moves most with `name_dof` (a node and component for a truss).
+    fn from_problem_named(
+        problem: DdProblem<'_>,
+        opts: DdOptions,
+        name_dof: &dyn Fn(usize) -> String,
+    ) -> Result<DdSolver> {
         let t0 = Instant::now();
         let DdProblem {
             decomposition: dec,
@@ -385,7 +417,12 @@ impl DdSolver {
         let singular: Vec<usize> = operators.iter().filter(|o| o.kernel_dim() > 0).map(|o| o.id).collect();
         if !singular.is_empty() && (!opts.coarse || ns == 1) {
             let what = if ns == 1 {
-                "the structure is not supported well enough: its stiffness is singular".to_string()
+                let r = operators[0].kernel();
+                let e0: Vec<f64> = (0..r.ncols()).map(|j| if j == 0 { 1.0 } else { 0.0 }).collect();
+                let at = largest_motion(&[(r, &dec.subdomains[0].dofs, &e0)])
+                    .map(|d| format!(" (a free motion, largest at {})", name_dof(d)))
+                    .unwrap_or_default();
+                format!("the structure is not supported well enough: its stiffness is singular{at}")
             } else {
                 format!(
                     "monolevel needs every subdomain matrix to be regular, but subdomain{} {} {} singular (floating or with a mechanism at the cut); use multilevel",
@@ -589,7 +626,25 @@ impl DdSolver {
             for (s, p) in parts.iter().enumerate() {
                 owner[p.alpha_off..p.alpha_off + p.g.ncols()].fill(s);
             }
-            coarse = Some(CoarseProblem::new(n_macro, n_alpha, &parts, &owner)?);
+            let describe = |alpha: &[f64]| {
+                let modes: Vec<_> = subs
+                    .iter()
+                    .zip(&dec.subdomains)
+                    .map(|(st, sd)| {
+                        (
+                            st.op.kernel(),
+                            &sd.dofs[..],
+                            &alpha[st.alpha_off..st.alpha_off + st.alpha.len()],
+                        )
+                    })
+                    .collect();
+                largest_motion(&modes)
+                    .map(|d| format!(" (largest motion at {})", name_dof(d)))
+                    .unwrap_or_default()
+            };
+            coarse = Some(CoarseProblem::new_described(
+                n_macro, n_alpha, &parts, &owner, &describe,
+            )?);
         }
 
         let stats = DdStats {

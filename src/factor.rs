@@ -158,8 +158,16 @@ impl SparseCholesky {
             None => (0..n).collect(),
         };
         if let Err(faer::linalg::cholesky::llt::factor::LltError::NonPositivePivot { index }) = res {
+            // faer 0.24.4 reports the failing pivot one-based from its
+            // simplicial kernel (`k + 1`) but zero-based from its supernodal
+            // one (`j + s_start`); taken as is, a mechanism was named at the
+            // dof after the free one (x-free printed "y").
+            let p = match symbolic.raw() {
+                SymbolicCholeskyRaw::Simplicial(_) => index.saturating_sub(1),
+                SymbolicCholeskyRaw::Supernodal(_) => index,
+            };
             return Err(FactorError::Pivot {
-                dof: perm_fwd[index.min(n - 1)],
+                dof: perm_fwd[p.min(n - 1)],
                 ratio: 0.0,
                 negative: true,
             });
@@ -478,6 +486,47 @@ pub fn sym_matvec(lower: &SparseColMat<usize, f64>, x: &[f64], y: &mut [f64]) {
             y[i] += v * x[j];
             if i != j {
                 y[j] += v * x[i];
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A dense SPD block of order `m` (diagonally dominant) with one extra
+    /// row `zero` that has an explicit zero diagonal and no coupling: the
+    /// factorization must fail at that row, whichever kernel faer picks.
+    fn block_with_zero_row(m: usize, zero: usize) -> (SparseColMat<usize, f64>, SparseColMat<usize, f64>) {
+        let n = m + 1;
+        let idx = |i: usize| if i >= zero { i + 1 } else { i };
+        let mut trip = Vec::new();
+        for j in 0..m {
+            trip.push((idx(j), idx(j), 2.0 * m as f64));
+            for i in j + 1..m {
+                trip.push((idx(i), idx(j), 1.0));
+            }
+        }
+        let mut regular = trip.clone();
+        trip.push((zero, zero, 0.0));
+        regular.push((zero, zero, 1.0));
+        (lower_csc(n, &trip).unwrap(), lower_csc(n, &regular).unwrap())
+    }
+
+    #[test]
+    fn non_positive_pivot_names_its_own_row_in_both_kernels() {
+        for (m, supernodal) in [(5, false), (400, true)] {
+            for zero in [0, 2, m / 2, m] {
+                let (singular, regular) = block_with_zero_row(m, zero);
+                // The same pattern factored without the zero shows which
+                // kernel faer chose (the failure path cannot tell).
+                let ok = SparseCholesky::factor(&regular, 1).unwrap();
+                assert_eq!(ok.is_supernodal(), supernodal, "m = {m}");
+                match SparseCholesky::factor(&singular, 1) {
+                    Err(FactorError::Pivot { dof, .. }) => assert_eq!(dof, zero, "m = {m}"),
+                    other => panic!("m = {m}, zero row {zero}: expected a pivot failure, got {other:?}"),
+                }
             }
         }
     }

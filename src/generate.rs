@@ -8,7 +8,7 @@
 //! up front — because the scenes go from a few elements to millions of dofs.
 //!
 //! Node and element numbering is part of each generator's documentation:
-//! tests, reference scenes (`/work/shared/reference`) and users rely on it.
+//! tests, reference scenes (`tests/data/reference`) and users rely on it.
 //!
 //! [`by_name`] builds a scene from a kind and `key=value` strings for the
 //! command line; [`bundled`] lists the scenes shipped in `scenes/`.

@@ -29,7 +29,7 @@ use nsdd::vtk;
 )]
 struct Cli {
     /// Number of worker threads (rayon global pool; default: all cores)
-    #[arg(long, global = true, value_name = "N")]
+    #[arg(long, global = true, value_name = "N", value_parser = parse_count, allow_hyphen_values = true)]
     threads: Option<usize>,
     #[command(subcommand)]
     command: Command,
@@ -97,9 +97,37 @@ fn parse_preconditioner(s: &str) -> std::result::Result<Preconditioner, String> 
 fn parse_d(s: &str) -> std::result::Result<SearchDirection, String> {
     let d: SearchDirection = s.parse()?;
     match d {
-        SearchDirection::Value(v) if !(v > 0.0 && v.is_finite()) => Err(format!("must be positive, got {v}")),
+        SearchDirection::Value(v) if !(v > 0.0 && v.is_finite()) => {
+            Err(format!("must be a positive number or \"auto\", got {s}"))
+        }
         _ => Ok(d),
     }
+}
+
+// Numeric flags take `allow_hyphen_values` so that `--tolerance -1e-6`
+// reaches these checks (clap would otherwise read `-1e-6` as a flag), and
+// the message names the flag.
+
+/// A positive finite number (tolerances).
+fn parse_positive(s: &str) -> std::result::Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(v) if v > 0.0 && v.is_finite() => Ok(v),
+        _ => Err(format!("must be a positive number, got {s}")),
+    }
+}
+
+/// A whole number of at least 1 (counts, sizes, limits).
+fn parse_count(s: &str) -> std::result::Result<usize, String> {
+    match s.parse::<usize>() {
+        Ok(v) if v >= 1 => Ok(v),
+        _ => Err(format!("must be a whole number of at least 1, got {s}")),
+    }
+}
+
+/// A whole number of at least 0.
+fn parse_non_negative(s: &str) -> std::result::Result<usize, String> {
+    s.parse::<usize>()
+        .map_err(|_| format!("must be a whole number of at least 0, got {s}"))
 }
 
 #[derive(Args)]
@@ -110,16 +138,16 @@ struct SolveArgs {
     #[arg(long, value_enum)]
     method: Option<MethodArg>,
     /// Number of subdomains (iterative methods)
-    #[arg(long, value_name = "N")]
+    #[arg(long, value_name = "N", value_parser = parse_count, allow_hyphen_values = true)]
     subdomains: Option<usize>,
     /// Relative tolerance on the convergence indicator
-    #[arg(long, value_name = "T")]
+    #[arg(long, value_name = "T", value_parser = parse_positive, allow_hyphen_values = true)]
     tolerance: Option<f64>,
     /// Iteration limit
-    #[arg(long, value_name = "K")]
+    #[arg(long, value_name = "K", value_parser = parse_count, allow_hyphen_values = true)]
     max_iterations: Option<usize>,
     /// Search direction d of the local stage: a positive number or "auto"
-    #[arg(long, value_name = "D|auto", value_parser = parse_d)]
+    #[arg(long, value_name = "D|auto", value_parser = parse_d, allow_hyphen_values = true)]
     search_direction: Option<SearchDirection>,
     /// Preconditioner of cg: dirichlet (default: interior solves, fewer iterations) or lumped
     #[arg(long, value_name = "P", value_parser = parse_preconditioner)]
@@ -149,7 +177,7 @@ struct PartitionArgs {
     /// Scene file
     scene: PathBuf,
     /// Number of subdomains (default: the scene's [solver] subdomains)
-    #[arg(long, value_name = "N")]
+    #[arg(long, value_name = "N", value_parser = parse_count, allow_hyphen_values = true)]
     subdomains: Option<usize>,
     /// Print the report as JSON
     #[arg(long)]
@@ -164,14 +192,16 @@ struct AccuracyArgs {
     #[arg(long, value_name = "DIR")]
     out: PathBuf,
     /// Subdomains of the iterative methods (default: the scene's, or 4 when it asks for 1)
-    #[arg(long, value_name = "N")]
+    #[arg(long, value_name = "N", value_parser = parse_count, allow_hyphen_values = true)]
     subdomains: Option<usize>,
     /// Tolerances to sweep, comma separated
     #[arg(
         long,
         value_name = "T,...",
         value_delimiter = ',',
-        default_value = "1e-2,1e-3,1e-4,1e-5,1e-6,1e-7,1e-8,1e-9,1e-10"
+        default_value = "1e-2,1e-3,1e-4,1e-5,1e-6,1e-7,1e-8,1e-9,1e-10",
+        value_parser = parse_positive,
+        allow_hyphen_values = true
     )]
     tolerances: Vec<f64>,
     /// Iterative methods to run, comma separated (default: all; the direct
@@ -179,14 +209,14 @@ struct AccuracyArgs {
     #[arg(long, value_name = "M,...", value_delimiter = ',')]
     methods: Vec<IterativeArg>,
     /// Iteration limit (default: the scene's)
-    #[arg(long, value_name = "K")]
+    #[arg(long, value_name = "K", value_parser = parse_count, allow_hyphen_values = true)]
     max_iterations: Option<usize>,
     /// Search direction d: a positive number or "auto" (default: the scene's)
-    #[arg(long, value_name = "D|auto", value_parser = parse_d)]
+    #[arg(long, value_name = "D|auto", value_parser = parse_d, allow_hyphen_values = true)]
     search_direction: Option<SearchDirection>,
     /// Number of true-error samples along each convergence history (0: none).
     /// Each sample re-runs setup + the first k iterations (k geometric).
-    #[arg(long, value_name = "N", default_value_t = 24)]
+    #[arg(long, value_name = "N", default_value_t = 24, value_parser = parse_non_negative, allow_hyphen_values = true)]
     samples: usize,
 }
 
@@ -198,13 +228,13 @@ struct BenchArgs {
     #[arg(value_parser = ["direct", "iteration"])]
     what: String,
     /// Grid sizes (nx = ny) of the generated double-layer grids, increasing
-    #[arg(long, value_delimiter = ',', default_value = "40,130")]
+    #[arg(long, value_delimiter = ',', default_value = "40,130", value_parser = parse_count, allow_hyphen_values = true)]
     sizes: Vec<usize>,
     /// Subdomain counts (iteration profile)
-    #[arg(long, value_delimiter = ',', default_value = "4,16")]
+    #[arg(long, value_delimiter = ',', default_value = "4,16", value_parser = parse_count, allow_hyphen_values = true)]
     subdomains: Vec<usize>,
     /// Iterations timed per measurement (iteration profile)
-    #[arg(long, default_value_t = 20)]
+    #[arg(long, default_value_t = 20, value_parser = parse_count, allow_hyphen_values = true)]
     iterations: usize,
     /// Unilateral cables (nonsmooth) instead of the linear grid
     #[arg(long)]
@@ -220,22 +250,22 @@ struct ScalingArgs {
     #[arg(long, default_value = "grid")]
     kind: String,
     /// Sizes (nx = ny = size; nz for a tower), comma separated
-    #[arg(long, value_name = "N,...", value_delimiter = ',', default_value = "8,16,32")]
+    #[arg(long, value_name = "N,...", value_delimiter = ',', default_value = "8,16,32", value_parser = parse_count, allow_hyphen_values = true)]
     sizes: Vec<usize>,
     /// Subdomain counts, comma separated; the weak study pairs sizes[i] with subdomains[i]
-    #[arg(long, value_name = "N,...", value_delimiter = ',', default_value = "4,16,64")]
+    #[arg(long, value_name = "N,...", value_delimiter = ',', default_value = "4,16,64", value_parser = parse_count, allow_hyphen_values = true)]
     subdomains: Vec<usize>,
     /// Size of the strong-scaling study (default: the largest size)
-    #[arg(long, value_name = "SIZE")]
+    #[arg(long, value_name = "SIZE", value_parser = parse_count, allow_hyphen_values = true)]
     strong_size: Option<usize>,
     /// Tolerance of the iterative methods
-    #[arg(long, value_name = "T", default_value = "1e-6")]
+    #[arg(long, value_name = "T", default_value = "1e-6", value_parser = parse_positive, allow_hyphen_values = true)]
     tolerance: f64,
     /// Iteration limit
-    #[arg(long, value_name = "K", default_value_t = 20000)]
+    #[arg(long, value_name = "K", default_value_t = 20000, value_parser = parse_count, allow_hyphen_values = true)]
     max_iterations: usize,
     /// Search direction d: a positive number or "auto"
-    #[arg(long, value_name = "D|auto", value_parser = parse_d, default_value = "auto")]
+    #[arg(long, value_name = "D|auto", value_parser = parse_d, default_value = "auto", allow_hyphen_values = true)]
     search_direction: SearchDirection,
     /// Extra generator parameter key=value (repeatable)
     #[arg(long = "param", value_name = "KEY=VALUE")]

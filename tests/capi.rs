@@ -475,6 +475,74 @@ fn unsolvable_structures() {
     }
 }
 
+/// Issue #20: three nodes in the x–z plane, node 1 held by two bars and
+/// free along y (`free = 1`) or, rotated, along x (`free = 0`). Every
+/// method must name node 1 and the free component; the direct solver used
+/// to print the component after the free one.
+#[test]
+fn mechanism_names_the_free_node_and_component() {
+    unsafe {
+        for (free, name) in [(1usize, "component y"), (0, "component x")] {
+            // Node 1 lifted along z; the chain runs along the axis other
+            // than `free` and z.
+            let run = 1 - free;
+            let mut xyz = [[0.0f64; 3]; 3];
+            for (i, p) in xyz.iter_mut().enumerate() {
+                p[run] = i as f64;
+            }
+            xyz[1][2] = 1.0;
+            let col = |c: usize| xyz.iter().map(|p| p[c]).collect::<Vec<f64>>();
+            let s = nsdd_scene_new();
+            ok(nsdd_scene_set_nodes(
+                s,
+                3,
+                col(0).as_ptr(),
+                col(1).as_ptr(),
+                col(2).as_ptr(),
+            ));
+            ok(nsdd_scene_set_elements(
+                s,
+                2,
+                [0usize, 1].as_ptr(),
+                [1usize, 2].as_ptr(),
+                [0u8, 0].as_ptr(),
+                [100.0, 100.0].as_ptr(),
+                null(),
+            ));
+            ok(nsdd_scene_set_supports(s, 2, [0usize, 2].as_ptr(), [7u8, 7].as_ptr()));
+            ok(nsdd_scene_set_loads(
+                s,
+                1,
+                [1usize].as_ptr(),
+                [0.0].as_ptr(),
+                [0.0].as_ptr(),
+                [-1.0].as_ptr(),
+            ));
+            for (method, subdomains) in [
+                (NsddMethod::Direct, 1),
+                (NsddMethod::Multilevel, 1),
+                (NsddMethod::Multilevel, 2),
+                (NsddMethod::Cg, 2),
+            ] {
+                let o = nsdd_options_new();
+                ok(nsdd_options_set_method(o, method as u32));
+                ok(nsdd_options_set_subdomains(o, subdomains));
+                let mut r = null_mut();
+                let st = nsdd_solve(s, o, &mut r);
+                let msg = last_error();
+                assert_eq!(st, NsddStatus::Mechanism, "{method:?} {subdomains}: {msg}");
+                assert!(r.is_null());
+                assert!(
+                    msg.contains("node 1") && msg.contains(name),
+                    "{method:?} on {subdomains} subdomains, free along {name}: {msg:?}"
+                );
+                nsdd_options_destroy(o);
+            }
+            nsdd_scene_destroy(s);
+        }
+    }
+}
+
 #[test]
 fn options_reject_bad_values() {
     unsafe {
@@ -1506,7 +1574,11 @@ fn algebraic_bad_arguments() {
             l2g.as_ptr(),
         ));
         ok(nsdd_alg_set_dof_points(h, 2, xyz.as_ptr(), [0u8; 2].as_ptr()));
-        expect_err(nsdd_alg_setup(h, null()), NsddStatus::Mechanism, "singular");
+        expect_err(
+            nsdd_alg_setup(h, null()),
+            NsddStatus::Mechanism,
+            "singular (a free motion, largest at global dof",
+        );
         // A wrong kernel is invalid input.
         ok(nsdd_alg_set_kernel(h, 0, 2, 1, [1.0, 0.0].as_ptr()));
         expect_err(nsdd_alg_setup(h, null()), NsddStatus::InvalidInput, "kernel");

@@ -31,7 +31,7 @@ fn root() -> PathBuf {
 }
 
 fn reference_dir() -> PathBuf {
-    root().join("../shared/reference")
+    root().join("tests/data/reference")
 }
 
 fn s(p: &Path) -> &str {
@@ -247,6 +247,117 @@ fn bad_scene_fails_naming_field_and_index_without_output() {
     let out = nsdd(&["solve", s(&d.join("missing.toml")), "--out", s(&res)]);
     assert_eq!(out.status.code(), Some(2));
     assert!(!res.exists());
+}
+
+/// Issue #20 item 3: a negative number after a numeric flag reached clap's
+/// "unexpected argument '-1' found"; it must reach the flag's own check,
+/// which names the flag, with the bad-input exit status.
+#[test]
+fn negative_flag_values_reach_the_flags_own_check() {
+    let grid = root().join("scenes/grid-4x4-linear.toml");
+    let g = s(&grid);
+    let cases: &[(&[&str], &str)] = &[
+        (
+            &["solve", g, "--tolerance", "-1e-6"],
+            "'--tolerance <T>': must be a positive number, got -1e-6",
+        ),
+        (
+            &["solve", g, "--tolerance", "-1"],
+            "'--tolerance <T>': must be a positive number",
+        ),
+        (
+            &["solve", g, "--tolerance", "0"],
+            "'--tolerance <T>': must be a positive number",
+        ),
+        (
+            &["solve", g, "--search-direction", "-1"],
+            "'--search-direction <D|auto>': must be a positive number",
+        ),
+        (
+            &["solve", g, "--subdomains", "-2"],
+            "'--subdomains <N>': must be a whole number of at least 1",
+        ),
+        (
+            &["solve", g, "--max-iterations", "-5"],
+            "'--max-iterations <K>': must be a whole number",
+        ),
+        (
+            &["solve", g, "--threads", "-1"],
+            "'--threads <N>': must be a whole number",
+        ),
+        (
+            &["partition", g, "--subdomains", "-4"],
+            "'--subdomains <N>': must be a whole number",
+        ),
+        (
+            &["accuracy", g, "--out", "unused", "--tolerances", "1e-2,-1e-3"],
+            "'--tolerances <T,...>': must be a positive number, got -1e-3",
+        ),
+        (
+            &["accuracy", g, "--out", "unused", "--samples", "-1"],
+            "'--samples <N>': must be a whole number of at least 0",
+        ),
+        (
+            &["scaling", "--out", "unused", "--tolerance", "-1e-6"],
+            "'--tolerance <T>': must be a positive number",
+        ),
+        (
+            &["bench", "direct", "--sizes", "4,-8"],
+            "'--sizes <SIZES>': must be a whole number",
+        ),
+    ];
+    for (args, want) in cases {
+        let out = nsdd(args);
+        let err = text(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{args:?}: {err}");
+        assert!(err.contains(want), "{args:?}: expected {want:?} in\n{err}");
+        assert!(!err.contains("unexpected argument"), "{args:?}: {err}");
+    }
+    assert!(!root().join("unused").exists());
+}
+
+/// Issue #20: three nodes in the x–z plane, node 1 held by two bars and so
+/// free along y. The direct solver printed "component z" (the component
+/// after the free one) and the multilevel one named no node at all.
+#[test]
+fn mechanism_message_names_the_free_node_and_component() {
+    let d = tmp("mech-xz");
+    let scene = d.join("xz.toml");
+    std::fs::write(
+        &scene,
+        r#"[nodes]
+x = [0.0, 1.0, 2.0]
+y = [0.0, 0.0, 0.0]
+z = [0.0, 1.0, 0.0]
+[elements]
+a = [0, 1]
+b = [1, 2]
+kind = ["bar", "bar"]
+ea = [100.0, 100.0]
+[supports]
+node = [0, 2]
+dofs = ["xyz", "xyz"]
+[loads]
+node = [1]
+fz = [-1.0]
+"#,
+    )
+    .unwrap();
+    for (method, subdomains, want) in [
+        ("direct", "1", "no stiffness at node 1 component y"),
+        ("multilevel", "1", "largest at node 1, component y"),
+        (
+            "multilevel",
+            "2",
+            "subdomain 0 is not restrained by its interfaces (largest motion at node 1, component y)",
+        ),
+        ("cg", "2", "(largest motion at node 1, component y)"),
+    ] {
+        let out = nsdd(&["solve", s(&scene), "--method", method, "--subdomains", subdomains]);
+        assert_eq!(out.status.code(), Some(3), "{method}: {}", text(&out.stderr));
+        let err = text(&out.stderr);
+        assert!(err.contains(want), "{method} on {subdomains}: {err}");
+    }
 }
 
 #[test]

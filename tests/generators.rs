@@ -14,7 +14,9 @@ use nsdd::scene::{ElementKind, Scene};
 use nsdd::Error;
 
 fn reference(name: &str) -> Scene {
-    let path = Path::new("/work/shared/reference").join(name);
+    let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/data/reference")
+        .join(name);
     Scene::load(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
 }
 

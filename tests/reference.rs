@@ -1,13 +1,14 @@
 //! Cross-check against the independent reference solutions in
-//! `../shared/reference/` (dense active set, checked with Siconos' Lemke).
+//! `tests/data/reference/` (dense active set, checked with Siconos' Lemke;
+//! see the README there).
 
 use nsdd::direct::DirectSolver;
 use nsdd::model::Model;
 use nsdd::scene::Scene;
 use std::path::PathBuf;
 
-fn shared() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/reference")
+fn data() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/data/reference")
 }
 
 struct Ref {
@@ -17,8 +18,8 @@ struct Ref {
 }
 
 fn load_ref(name: &str) -> (Scene, Ref) {
-    let scene = Scene::load(&shared().join(format!("{name}.toml"))).unwrap();
-    let text = std::fs::read_to_string(shared().join(format!("{name}.ref.json"))).unwrap();
+    let scene = Scene::load(&data().join(format!("{name}.toml"))).unwrap();
+    let text = std::fs::read_to_string(data().join(format!("{name}.ref.json"))).unwrap();
     let v: serde_json::Value = serde_json::from_str(&text).unwrap();
     let displacements = v["displacements"]
         .as_array()

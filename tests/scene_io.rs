@@ -539,9 +539,9 @@ fn free_node_without_element_is_a_mechanism_naming_it() {
 
 #[test]
 fn reference_scenes_parse_and_validate() {
-    let dir = Path::new("/work/shared/reference");
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/reference");
     let mut n = 0;
-    for entry in std::fs::read_dir(dir).unwrap() {
+    for entry in std::fs::read_dir(&dir).unwrap() {
         let path = entry.unwrap().path();
         if path.extension().and_then(|e| e.to_str()) != Some("toml") {
             continue;
@@ -554,6 +554,39 @@ fn reference_scenes_parse_and_validate() {
         n += 1;
     }
     assert!(n >= 2, "expected the reference scenes in {}", dir.display());
+}
+
+/// The example of docs/scene-format.md: its TOML and JSON versions are the
+/// same scene, and solving it gives the values the document explains.
+#[test]
+fn scene_format_document_example_is_true() {
+    let doc = std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("docs/scene-format.md")).unwrap();
+    let block = |fence: &str| {
+        let start = doc.find(fence).unwrap_or_else(|| panic!("no {fence} block")) + fence.len();
+        let len = doc[start..].find("```").unwrap();
+        doc[start..start + len].to_string()
+    };
+    let from_toml = toml(&block("```toml\n"));
+    let from_json = Scene::from_json_str(&block("```json\n")).unwrap();
+    assert_eq!(from_toml, from_json);
+    assert_round_trips(&from_toml);
+    for method in [Method::Direct, from_toml.solver.method] {
+        let mut o = nsdd::solve::SolveOptions::from_scene(&from_toml);
+        o.method = method;
+        let r = nsdd::solve::solve(&from_toml, &o).unwrap();
+        assert!(r.converged);
+        assert_eq!(r.slack, [true, false, false]);
+        let want_t = [0.0, 3.0, -1.0];
+        let want_u1 = [-0.02, -0.001, 0.0];
+        for e in 0..3 {
+            assert!((r.tensions[e] - want_t[e]).abs() < 1e-9, "{method:?}: {:?}", r.tensions);
+            assert!(
+                (r.displacements[1][e] - want_u1[e]).abs() < 1e-11,
+                "{method:?}: {:?}",
+                r.displacements
+            );
+        }
+    }
 }
 
 #[test]
