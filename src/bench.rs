@@ -37,6 +37,10 @@ pub struct DirectProfile {
     /// Bytes of `K` (lower CSC) plus `L` values.
     pub matrix_and_factor_bytes: u64,
     pub peak_bytes: Option<u64>,
+    /// Fill-reducing ordering used (`"amd"` or `"nested_dissection"`).
+    pub ordering: String,
+    /// Threads of the numeric factorization.
+    pub factor_threads: usize,
 }
 
 /// Factors and solves `scene` with the direct solver, timing each phase.
@@ -61,6 +65,8 @@ pub fn direct_profile(scene: &Scene) -> Result<DirectProfile> {
         overhead_ratio: (st.assembly_s + st.ordering_s + solve_s) / st.factor_s.max(1e-12),
         matrix_and_factor_bytes: bytes,
         peak_bytes: peak_memory_bytes(),
+        ordering: st.ordering.map_or("none", |o| o.name()).to_string(),
+        factor_threads: st.threads,
     })
 }
 

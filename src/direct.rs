@@ -23,7 +23,7 @@
 //! terminates for the positive definite Schur matrices met here.
 
 use crate::error::{Error, Result};
-use crate::factor::{lower_csc, FactorError, SparseCholesky};
+use crate::factor::{lower_csc, FactorError, OrderingKind, SparseCholesky, PIVOT_RATIO};
 use crate::model::Model;
 use faer::linalg::solvers::Solve;
 use faer::Mat;
@@ -40,47 +40,6 @@ const SCHUR_MAX: usize = 400;
 /// Stiffness fraction kept by slack cables in a step whose slack set alone
 /// would be a mechanism.
 const SOFT: f64 = 1e-6;
-
-/// Solves `(K − (1−s) H_S K_S H_Sᵀ) u = b + (1−s) H_S K_S e0_S`: the
-/// structure with its slack cables removed (`s = 0`, their tension is zero)
-/// or softened to `s` times their stiffness, by a fresh factorization.
-fn solve_without_slack(model: &Model, b: &[f64], slack: &[bool], soft: f64, u: &mut [f64]) -> Result<()> {
-    let mut is_slack = vec![false; model.elements.len()];
-    for (c, &e) in model.cables.iter().enumerate() {
-        is_slack[e] = slack[c];
-    }
-    let taut: Vec<usize> = (0..model.elements.len()).filter(|&e| !is_slack[e]).collect();
-    let mut trip = model.stiffness_triplets(&taut, Some);
-    if soft > 0.0 {
-        let loose: Vec<usize> = (0..model.elements.len()).filter(|&e| is_slack[e]).collect();
-        trip.extend(
-            model
-                .stiffness_triplets(&loose, Some)
-                .into_iter()
-                .map(|(r, c, v)| (r, c, soft * v)),
-        );
-    }
-    let k = lower_csc(model.n_free, &trip).map_err(|e| Error::Numerical(format!("{e:?}")))?;
-    let mut chol = SparseCholesky::factor(&k, 1).map_err(|e| match e {
-        FactorError::Pivot { dof, .. } => {
-            let (node, c) = model.dof_owner(dof);
-            Error::Mechanism(format!(
-                "the structure becomes a mechanism when its slack cables are removed (no stiffness at node {node} component {})",
-                ["x", "y", "z"][c]
-            ))
-        }
-        FactorError::Internal(m) => Error::Numerical(m),
-    })?;
-    u.copy_from_slice(b);
-    for (c, &e) in model.cables.iter().enumerate() {
-        if slack[c] {
-            let el = &model.elements[e];
-            model.add_h(e, (1.0 - soft) * el.k * el.e0, u);
-        }
-    }
-    chol.solve_in_place(u);
-    Ok(())
-}
 
 /// The equilibrium found by a solver, in free-dof numbering.
 #[derive(Debug, Clone, PartialEq)]
@@ -105,6 +64,22 @@ pub struct DirectStats {
     /// Numeric factorization.
     pub factor_s: f64,
     pub supernodal: bool,
+    /// Fill-reducing ordering chosen (smaller predicted `nnz(L)`).
+    pub ordering: Option<OrderingKind>,
+    /// Threads of the numeric factorization.
+    pub threads: usize,
+}
+
+/// Parallelism of the whole-structure factorizations (the first one and
+/// the active set's refactorizations): faer's parallel supernodal LLT on
+/// every thread of the current rayon pool.
+fn whole_structure_par() -> faer::Par {
+    let t = rayon::current_num_threads().max(1);
+    if t > 1 {
+        faer::Par::rayon(t)
+    } else {
+        faer::Par::Seq
+    }
 }
 
 /// Maps a factorization pivot failure on the whole structure to a message
@@ -128,6 +103,13 @@ pub struct DirectSolver {
     /// Dense symmetric `K_c^{1/2} h_cᵀ K⁻¹ h_d K_d^{1/2}` over `cached`.
     schur: Mat<f64>,
     schur_max: usize,
+    /// Factor of `K` with the slack cables removed or softened, sharing the
+    /// symbolic analysis of `chol`: the assembly keeps every element's
+    /// entries (zero for a removed cable), so the pattern never changes
+    /// and each active-set step is one numeric refactorization.
+    without_slack: Option<SparseCholesky>,
+    /// Numeric refactorizations done by the active set (for tests/reports).
+    refactorizations: usize,
 }
 
 impl DirectSolver {
@@ -141,7 +123,8 @@ impl DirectSolver {
         if model.n_free == 0 {
             return Err(Error::Mechanism("every dof is blocked: nothing to solve".into()));
         }
-        let chol = SparseCholesky::factor(&k, BATCH).map_err(|e| match e {
+        let par = whole_structure_par();
+        let chol = SparseCholesky::factor_with(&k, None, BATCH, PIVOT_RATIO, par).map_err(|e| match e {
             FactorError::Pivot { dof, negative: true, .. } if model.effects.geometric_stiffness => Error::Mechanism(format!(
                 "the stiffness with geometric stiffness is not positive definite (negative pivot at node {} component {})",
                 model.dof_owner(dof).0,
@@ -158,6 +141,8 @@ impl DirectSolver {
             ordering_s: chol.timings.symbolic_s,
             factor_s: chol.timings.numeric_s,
             supernodal: chol.is_supernodal(),
+            ordering: Some(chol.ordering()),
+            threads: par.degree(),
         };
         Ok(DirectSolver {
             chol,
@@ -166,6 +151,8 @@ impl DirectSolver {
             cache_pos: vec![usize::MAX; model.cables.len()],
             schur: Mat::zeros(0, 0),
             schur_max: SCHUR_MAX,
+            without_slack: None,
+            refactorizations: 0,
         })
     }
 
@@ -173,6 +160,69 @@ impl DirectSolver {
     /// factorization (default 400); larger sets refactor `K` without them.
     pub fn set_schur_limit(&mut self, max_slack: usize) {
         self.schur_max = max_slack;
+    }
+
+    /// Numeric refactorizations of `K` without slack cables done so far
+    /// (large slack sets, see [`DirectSolver::set_schur_limit`]).
+    pub fn refactorizations(&self) -> usize {
+        self.refactorizations
+    }
+
+    /// Solves `(K − (1−s) H_S K_S H_Sᵀ) u = b + (1−s) H_S K_S e0_S`: the
+    /// structure with its slack cables removed (`s = 0`, their tension is
+    /// zero) or softened to `s` times their stiffness, by a numeric
+    /// refactorization on the symbolic analysis of `K`.
+    fn solve_without_slack(
+        &mut self,
+        model: &Model,
+        b: &[f64],
+        slack: &[bool],
+        soft: f64,
+        u: &mut [f64],
+    ) -> Result<()> {
+        let mut is_slack = vec![false; model.elements.len()];
+        for (c, &e) in model.cables.iter().enumerate() {
+            is_slack[e] = slack[c];
+        }
+        let taut: Vec<usize> = (0..model.elements.len()).filter(|&e| !is_slack[e]).collect();
+        let loose: Vec<usize> = (0..model.elements.len()).filter(|&e| is_slack[e]).collect();
+        let mut trip = model.stiffness_triplets(&taut, Some);
+        // Removed cables (soft = 0) stay in the pattern as explicit zeros.
+        trip.extend(
+            model
+                .stiffness_triplets(&loose, Some)
+                .into_iter()
+                .map(|(r, c, v)| (r, c, soft * v)),
+        );
+        let k = lower_csc(model.n_free, &trip).map_err(|e| Error::Numerical(format!("{e:?}")))?;
+        let chol = match &mut self.without_slack {
+            Some(f) => f,
+            slot => slot.insert(
+                self.chol
+                    .sharing_symbolic(1)
+                    .map_err(|e| Error::Numerical(format!("{e:?}")))?,
+            ),
+        };
+        self.refactorizations += 1;
+        chol.refactor(&k, PIVOT_RATIO).map_err(|e| match e {
+            FactorError::Pivot { dof, .. } => {
+                let (node, c) = model.dof_owner(dof);
+                Error::Mechanism(format!(
+                    "the structure becomes a mechanism when its slack cables are removed (no stiffness at node {node} component {})",
+                    ["x", "y", "z"][c]
+                ))
+            }
+            FactorError::Internal(m) => Error::Numerical(m),
+        })?;
+        u.copy_from_slice(b);
+        for (c, &e) in model.cables.iter().enumerate() {
+            if slack[c] {
+                let el = &model.elements[e];
+                model.add_h(e, (1.0 - soft) * el.k * el.e0, u);
+            }
+        }
+        chol.solve_in_place(u);
+        Ok(())
     }
 
     /// Sizes and timings of the factorization.
@@ -252,14 +302,14 @@ impl DirectSolver {
                 self.chol.solve_in_place(&mut u);
             } else {
                 if mechanism.is_none() {
-                    match solve_without_slack(model, b, &slack, 0.0, &mut u) {
+                    match self.solve_without_slack(model, b, &slack, 0.0, &mut u) {
                         Ok(()) => {}
                         Err(Error::Mechanism(m)) => mechanism = Some(m),
                         Err(e) => return Err(e),
                     }
                 }
                 if mechanism.is_some() {
-                    solve_without_slack(model, b, &slack, SOFT, &mut u)?;
+                    self.solve_without_slack(model, b, &slack, SOFT, &mut u)?;
                     softened = true;
                 }
                 for &c in &set {

@@ -39,13 +39,50 @@ pub enum FactorError {
 /// Symmetric positive definite sparse matrix, factored once.
 pub struct SparseCholesky {
     n: usize,
-    symbolic: SymbolicCholesky<usize>,
+    /// Shared by refactorizations of the same pattern.
+    symbolic: std::sync::Arc<SymbolicCholesky<usize>>,
+    /// Pattern (column pointers, row indices) the analysis was done for.
+    pattern: std::sync::Arc<(Vec<usize>, Vec<usize>)>,
     l_values: Vec<f64>,
     scratch: MemBuffer,
     scratch_cols: usize,
+    ordering: OrderingKind,
+    /// Parallelism of the numeric factorization (solves stay sequential).
+    par: Par,
     /// Seconds spent in the symbolic analysis (with the AMD ordering unless
     /// an [`EliminationOrder`] was given) and the numeric LLT.
     pub timings: FactorTimings,
+}
+
+/// Which fill-reducing ordering a factorization used.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum OrderingKind {
+    /// Approximate minimum degree (faer's AMD).
+    Amd,
+    /// METIS nested dissection.
+    NestedDissection,
+}
+
+impl OrderingKind {
+    /// Short name for reports (`"amd"`, `"nested_dissection"`).
+    pub fn name(self) -> &'static str {
+        match self {
+            OrderingKind::Amd => "amd",
+            OrderingKind::NestedDissection => "nested_dissection",
+        }
+    }
+}
+
+/// Which orderings [`EliminationOrder::best_in_reference`] may return.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum OrderingChoice {
+    /// The smaller predicted `nnz(L)` of AMD and nested dissection
+    /// (nested dissection is only tried when AMD's fill is large, as in
+    /// CHOLMOD's default).
+    Auto,
+    Amd,
+    NestedDissection,
 }
 
 /// Where the factorization time went.
@@ -60,8 +97,28 @@ impl std::fmt::Debug for SparseCholesky {
         f.debug_struct("SparseCholesky")
             .field("n", &self.n)
             .field("nnz_l", &self.nnz_l())
+            .field("ordering", &self.ordering)
             .finish()
     }
+}
+
+fn pattern_of(lower: &SparseColMat<usize, f64>) -> (Vec<usize>, Vec<usize>) {
+    let a = lower.symbolic();
+    let n = a.ncols();
+    let mut col_ptr = Vec::with_capacity(n + 1);
+    let mut row_idx = Vec::with_capacity(lower.compute_nnz());
+    col_ptr.push(0);
+    for j in 0..n {
+        row_idx.extend(a.row_idx_of_col(j));
+        col_ptr.push(row_idx.len());
+    }
+    (col_ptr, row_idx)
+}
+
+fn same_pattern(lower: &SparseColMat<usize, f64>, pattern: &(Vec<usize>, Vec<usize>)) -> bool {
+    let a = lower.symbolic();
+    let (cp, ri) = pattern;
+    a.ncols() + 1 == cp.len() && (0..a.ncols()).all(|j| a.row_idx_of_col(j).eq(ri[cp[j]..cp[j + 1]].iter().copied()))
 }
 
 /// Builds a lower-triangular CSC matrix from triplets, summing duplicates.
@@ -126,33 +183,85 @@ impl SparseCholesky {
     }
 
     /// [`SparseCholesky::factor_checked`] with a precomputed elimination
-    /// order (`None`: AMD on `lower` as numbered).
+    /// order (`None`: the smaller fill of AMD and nested dissection on
+    /// `lower` as numbered, see [`OrderingChoice::Auto`]).
     pub fn factor_ordered(
         lower: &SparseColMat<usize, f64>,
         order: Option<&EliminationOrder>,
         max_rhs: usize,
         pivot_ratio: f64,
     ) -> Result<Self, FactorError> {
-        let n = lower.nrows();
+        Self::factor_with(lower, order, max_rhs, pivot_ratio, Par::Seq)
+    }
+
+    /// [`SparseCholesky::factor_ordered`] with the numeric factorization
+    /// (and later [`SparseCholesky::refactor`]s) run with `par` (the whole
+    /// structure uses both cores; subdomains stay `Par::Seq` inside and
+    /// run in parallel with each other). Solves stay sequential.
+    pub fn factor_with(
+        lower: &SparseColMat<usize, f64>,
+        order: Option<&EliminationOrder>,
+        max_rhs: usize,
+        pivot_ratio: f64,
+        par: Par,
+    ) -> Result<Self, FactorError> {
         let t = std::time::Instant::now();
-        let symbolic = symbolic_cholesky(lower, order)?;
+        let (symbolic, ordering) = match order {
+            Some(o) => (symbolic_cholesky(lower, Some(o))?, o.kind),
+            None => {
+                let (o, sym) = EliminationOrder::choose(lower, None, OrderingChoice::Auto)?;
+                (sym, o.kind)
+            }
+        };
         let symbolic_s = t.elapsed().as_secs_f64();
+        let n = lower.nrows();
+        let max_rhs = max_rhs.max(1);
+        let req = symbolic.solve_in_place_scratch::<f64>(max_rhs, Par::Seq);
+        let scratch = MemBuffer::try_new(req).map_err(|_| FactorError::Internal("out of memory".into()))?;
+        let mut this = SparseCholesky {
+            n,
+            l_values: vec![0.0f64; symbolic.len_val()],
+            symbolic: std::sync::Arc::new(symbolic),
+            pattern: std::sync::Arc::new(pattern_of(lower)),
+            scratch,
+            scratch_cols: max_rhs,
+            ordering,
+            par,
+            timings: FactorTimings {
+                symbolic_s,
+                numeric_s: 0.0,
+            },
+        };
+        this.refactor(lower, pivot_ratio)?;
+        Ok(this)
+    }
+
+    /// Numeric factorization of a new matrix with *the same pattern* as the
+    /// one this factor was built from (explicit zeros included), reusing
+    /// the symbolic analysis and the factor's storage. On a pivot failure
+    /// the factor is invalid until the next successful refactorization.
+    pub fn refactor(&mut self, lower: &SparseColMat<usize, f64>, pivot_ratio: f64) -> Result<(), FactorError> {
+        if !same_pattern(lower, &self.pattern) {
+            return Err(FactorError::Internal(
+                "refactorization with a pattern other than the analysed one".into(),
+            ));
+        }
+        let n = self.n;
         let t = std::time::Instant::now();
-        let mut l_values = vec![0.0f64; symbolic.len_val()];
-        let par = Par::Seq;
-        let fact_req = symbolic.factorize_numeric_llt_scratch::<f64>(par, Spec::default());
+        let symbolic = &*self.symbolic;
+        let fact_req = symbolic.factorize_numeric_llt_scratch::<f64>(self.par, Spec::default());
         let mut fbuf = MemBuffer::try_new(fact_req).map_err(|_| FactorError::Internal("out of memory".into()))?;
         let res = symbolic.factorize_numeric_llt(
-            &mut l_values,
+            &mut self.l_values,
             lower.as_ref(),
             Side::Lower,
             LltRegularization::default(),
-            par,
+            self.par,
             MemStack::new(&mut fbuf),
             Spec::default(),
         );
         drop(fbuf);
-        let numeric_s = t.elapsed().as_secs_f64();
+        self.timings.numeric_s = t.elapsed().as_secs_f64();
         let perm_fwd: Vec<usize> = match symbolic.perm() {
             Some(p) => p.arrays().0.to_vec(),
             None => (0..n).collect(),
@@ -172,19 +281,44 @@ impl SparseCholesky {
                 negative: true,
             });
         }
+        self.check_pivots(lower, &perm_fwd, pivot_ratio)
+    }
+
+    /// A second factor sharing this one's symbolic analysis, of a matrix
+    /// with the same pattern (see [`SparseCholesky::refactor`]).
+    pub fn factor_same_pattern(
+        &self,
+        lower: &SparseColMat<usize, f64>,
+        max_rhs: usize,
+        pivot_ratio: f64,
+    ) -> Result<SparseCholesky, FactorError> {
+        let mut other = self.sharing_symbolic(max_rhs)?;
+        other.refactor(lower, pivot_ratio)?;
+        Ok(other)
+    }
+
+    /// Storage for a factor with this one's symbolic analysis, *not yet
+    /// factored*: [`SparseCholesky::refactor`] it before solving.
+    pub(crate) fn sharing_symbolic(&self, max_rhs: usize) -> Result<SparseCholesky, FactorError> {
         let max_rhs = max_rhs.max(1);
-        let req = symbolic.solve_in_place_scratch::<f64>(max_rhs, par);
+        let req = self.symbolic.solve_in_place_scratch::<f64>(max_rhs, Par::Seq);
         let scratch = MemBuffer::try_new(req).map_err(|_| FactorError::Internal("out of memory".into()))?;
-        let this = SparseCholesky {
-            n,
-            symbolic,
-            l_values,
+        Ok(SparseCholesky {
+            n: self.n,
+            symbolic: self.symbolic.clone(),
+            pattern: self.pattern.clone(),
+            l_values: vec![0.0; self.l_values.len()],
             scratch,
             scratch_cols: max_rhs,
-            timings: FactorTimings { symbolic_s, numeric_s },
-        };
-        this.check_pivots(lower, &perm_fwd, pivot_ratio)?;
-        Ok(this)
+            ordering: self.ordering,
+            par: self.par,
+            timings: FactorTimings::default(),
+        })
+    }
+
+    /// The fill-reducing ordering this factor was computed with.
+    pub fn ordering(&self) -> OrderingKind {
+        self.ordering
     }
 
     /// Compares each pivot `L_jj²` with `A_jj` (both in permuted order).
@@ -278,15 +412,81 @@ impl SparseCholesky {
 pub struct EliminationOrder {
     fwd: Vec<usize>,
     inv: Vec<usize>,
+    kind: OrderingKind,
 }
+
+/// Nested dissection is tried only from this many rows on: below it AMD's
+/// fill is never large in absolute terms and METIS costs more than it saves.
+pub const ND_MIN_ROWS: usize = 200;
+
+/// CHOLMOD's default (`cholmod_analyze`): nested dissection is tried only
+/// when AMD gives `nnz(L) ≥ 5 nnz(A)` or more than 500 flops per entry of
+/// `L`; here the fill test alone (faer's symbolic gives `nnz(L)` directly).
+pub const ND_FILL_RATIO: f64 = 5.0;
 
 impl EliminationOrder {
     /// AMD on the pattern of `lower`, with the rows and columns renumbered
     /// by `rank` first (`rank[i]` is the reference number of row `i`, a
     /// permutation of `0..n`). With the identity it is faer's own AMD.
     pub fn amd_in_reference(lower: &SparseColMat<usize, f64>, rank: &[usize]) -> Result<Self, FactorError> {
-        use faer::sparse::linalg::amd;
+        Self::amd(lower, Some(rank))
+    }
+
+    /// METIS nested dissection on the pattern of `lower` renumbered by
+    /// `rank` (as [`EliminationOrder::amd_in_reference`]).
+    pub fn nd_in_reference(lower: &SparseColMat<usize, f64>, rank: &[usize]) -> Result<Self, FactorError> {
+        Self::nd(lower, Some(rank))
+    }
+
+    /// The ordering `choice` asks for in the reference numbering `rank`;
+    /// with [`OrderingChoice::Auto`], the one of AMD and nested dissection
+    /// with the smaller `nnz(L)` by faer's symbolic analysis (ties: AMD).
+    pub fn best_in_reference(
+        lower: &SparseColMat<usize, f64>,
+        rank: &[usize],
+        choice: OrderingChoice,
+    ) -> Result<Self, FactorError> {
+        Ok(Self::choose(lower, Some(rank), choice)?.0)
+    }
+
+    /// The ordering used for the factorization.
+    pub fn kind(&self) -> OrderingKind {
+        self.kind
+    }
+
+    /// [`EliminationOrder::best_in_reference`] (`rank = None`: as
+    /// numbered), with the winner's symbolic analysis.
+    pub(crate) fn choose(
+        lower: &SparseColMat<usize, f64>,
+        rank: Option<&[usize]>,
+        choice: OrderingChoice,
+    ) -> Result<(Self, SymbolicCholesky<usize>), FactorError> {
         let n = lower.nrows();
+        if choice == OrderingChoice::NestedDissection {
+            let nd = Self::nd(lower, rank)?;
+            let sym = symbolic_cholesky(lower, Some(&nd))?;
+            return Ok((nd, sym));
+        }
+        let amd = Self::amd(lower, rank)?;
+        let amd_sym = symbolic_cholesky(lower, Some(&amd))?;
+        let nnz_a = lower.compute_nnz();
+        if choice == OrderingChoice::Amd || n < ND_MIN_ROWS || (amd_sym.len_val() as f64) < ND_FILL_RATIO * nnz_a as f64
+        {
+            return Ok((amd, amd_sym));
+        }
+        let nd = Self::nd(lower, rank)?;
+        let nd_sym = symbolic_cholesky(lower, Some(&nd))?;
+        if nd_sym.len_val() < amd_sym.len_val() {
+            Ok((nd, nd_sym))
+        } else {
+            Ok((amd, amd_sym))
+        }
+    }
+
+    fn check_rank(n: usize, rank: Option<&[usize]>) -> Result<Vec<usize>, FactorError> {
+        let Some(rank) = rank else {
+            return Ok((0..n).collect());
+        };
         if rank.len() != n {
             return Err(FactorError::Internal(format!(
                 "reference numbering has {} entries for a {n}x{n} matrix",
@@ -302,15 +502,40 @@ impl EliminationOrder {
             }
             member[r] = i;
         }
-        let a = lower.as_ref();
-        let mut triplets = Vec::with_capacity(a.compute_nnz());
-        for j in 0..n {
-            for i in a.row_idx_of_col(j) {
-                let (ri, rj) = (rank[i], rank[j]);
-                triplets.push((ri.max(rj), ri.min(rj), 0.0));
-            }
+        Ok(member)
+    }
+
+    /// Maps an order of reference numbers back to rows.
+    fn from_reference(ref_fwd: &[usize], member: &[usize], kind: OrderingKind) -> Self {
+        // Step k eliminates reference dof ref_fwd[k], i.e. row member[..].
+        let fwd: Vec<usize> = ref_fwd.iter().map(|&r| member[r]).collect();
+        let mut inv = vec![0usize; fwd.len()];
+        for (k, &i) in fwd.iter().enumerate() {
+            inv[i] = k;
         }
-        let reference = lower_csc(n, &triplets)?;
+        EliminationOrder { fwd, inv, kind }
+    }
+
+    fn amd(lower: &SparseColMat<usize, f64>, rank: Option<&[usize]>) -> Result<Self, FactorError> {
+        use faer::sparse::linalg::amd;
+        let n = lower.nrows();
+        let member = Self::check_rank(n, rank)?;
+        let renumbered;
+        let reference = match rank {
+            None => lower,
+            Some(rank) => {
+                let a = lower.as_ref();
+                let mut triplets = Vec::with_capacity(a.compute_nnz());
+                for j in 0..n {
+                    for i in a.row_idx_of_col(j) {
+                        let (ri, rj) = (rank[i], rank[j]);
+                        triplets.push((ri.max(rj), ri.min(rj), 0.0));
+                    }
+                }
+                renumbered = lower_csc(n, &triplets)?;
+                &renumbered
+            }
+        };
         let mut ref_fwd = vec![0usize; n];
         let mut ref_inv = vec![0usize; n];
         let control = CholeskySymbolicParams::default().amd_params;
@@ -324,13 +549,16 @@ impl EliminationOrder {
             MemStack::new(&mut buf),
         )
         .map_err(|e| FactorError::Internal(format!("AMD ordering: {e:?}")))?;
-        // Step k eliminates reference dof ref_fwd[k], i.e. row member[..].
-        let fwd: Vec<usize> = ref_fwd.iter().map(|&r| member[r]).collect();
-        let mut inv = vec![0usize; n];
-        for (k, &i) in fwd.iter().enumerate() {
-            inv[i] = k;
-        }
-        Ok(EliminationOrder { fwd, inv })
+        Ok(Self::from_reference(&ref_fwd, &member, OrderingKind::Amd))
+    }
+
+    fn nd(lower: &SparseColMat<usize, f64>, rank: Option<&[usize]>) -> Result<Self, FactorError> {
+        let n = lower.nrows();
+        let member = Self::check_rank(n, rank)?;
+        let (cp, ri) = pattern_of(lower);
+        let graph = crate::ordering::Graph::from_symmetric_pattern(n, &cp, &ri, rank);
+        let ref_fwd = crate::ordering::nested_dissection(&graph).map_err(FactorError::Internal)?;
+        Ok(Self::from_reference(&ref_fwd, &member, OrderingKind::NestedDissection))
     }
 
     /// Row eliminated at each step.
@@ -340,6 +568,7 @@ impl EliminationOrder {
 }
 
 /// Symbolic analysis of `lower` in `order` (`None`: faer's AMD).
+/// Supernodal/simplicial is faer's choice.
 fn symbolic_cholesky(
     lower: &SparseColMat<usize, f64>,
     order: Option<&EliminationOrder>,

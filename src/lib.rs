@@ -16,6 +16,7 @@ pub mod generate;
 pub mod kernels;
 pub mod model;
 pub mod outcome;
+pub mod ordering;
 pub mod partition;
 pub mod report;
 pub mod result;

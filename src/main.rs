@@ -227,6 +227,13 @@ struct BenchArgs {
     /// substitution with every subdomain factor)
     #[arg(value_parser = ["direct", "iteration"])]
     what: String,
+    /// Scene file to profile (any scene) instead of the generated grids of
+    /// --sizes (size is then shown as 0)
+    scene: Option<PathBuf>,
+    /// Print the direct profile of SCENE as one JSON object (nnz(L), the
+    /// ordering, phase timings, peak memory) instead of the table
+    #[arg(long)]
+    json: bool,
     /// Grid sizes (nx = ny) of the generated double-layer grids, increasing
     #[arg(long, value_delimiter = ',', default_value = "40,130", value_parser = parse_count, allow_hyphen_values = true)]
     sizes: Vec<usize>,
@@ -686,6 +693,40 @@ fn cmd_scaling(a: ScalingArgs) -> Result<i32> {
     Ok(0)
 }
 
+/// `nsdd bench direct SCENE [--json]`: the direct profile of one scene.
+fn bench_direct_scene(a: &BenchArgs) -> Result<i32> {
+    let path = a.scene.as_ref().expect("checked by the caller");
+    let scene = Scene::load(path)?;
+    let p = nsdd::bench::direct_profile(&scene)?;
+    let json = serde_json::to_string(&p).expect("serializable");
+    if a.json {
+        println!("{json}");
+    } else {
+        let mib = |b: u64| b as f64 / (1024.0 * 1024.0);
+        println!("scene      {}", path.display());
+        println!("dofs       {}", p.dofs);
+        println!("nnz(K)     {}", p.nnz_k);
+        println!("nnz(L)     {}", p.nnz_l);
+        println!("ordering   {}", p.ordering);
+        println!("assembly   {:.3} s", p.assembly_s);
+        println!(
+            "ordering   {:.3} s (ordering choice and symbolic analysis)",
+            p.ordering_s
+        );
+        println!("factor     {:.3} s ({} threads)", p.factor_s, p.factor_threads);
+        println!(
+            "solve      {:.3} s ({} active-set steps)",
+            p.solve_s, p.active_set_steps
+        );
+        println!("K+L        {:.1} MiB", mib(p.matrix_and_factor_bytes));
+        println!("peak       {:.1} MiB", p.peak_bytes.map_or(f64::NAN, mib));
+    }
+    if let Some(out) = &a.out {
+        std::fs::write(out, format!("{json}\n")).map_err(|e| Error::Io(format!("{}: {e}", out.display())))?;
+    }
+    Ok(0)
+}
+
 fn cmd_bench(a: BenchArgs) -> Result<i32> {
     let mut rows: Vec<String> = Vec::new();
     let scene_of = |n: usize| {
@@ -697,6 +738,9 @@ fn cmd_bench(a: BenchArgs) -> Result<i32> {
             ..Default::default()
         })
     };
+    if a.what == "direct" && a.scene.is_some() {
+        return bench_direct_scene(&a);
+    }
     if a.what == "direct" {
         println!(
             "{:>6} {:>9} {:>11} {:>11} {:>9} {:>9} {:>9} {:>9} {:>6} {:>9} {:>10} {:>10}",
@@ -753,8 +797,11 @@ fn cmd_bench(a: BenchArgs) -> Result<i32> {
             "substit. ms",
             "ratio"
         );
-        for &n in &a.sizes {
-            let scene = scene_of(n);
+        let scenes: Vec<(usize, Scene)> = match &a.scene {
+            Some(path) => vec![(0, Scene::load(path)?)],
+            None => a.sizes.iter().map(|&n| (n, scene_of(n))).collect(),
+        };
+        for (n, scene) in scenes {
             // The direct solver's set-up on the same structure (assembly,
             // ordering, factorization), for the set-up ratio.
             let direct = nsdd::bench::direct_profile(&scene)?;

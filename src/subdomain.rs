@@ -15,7 +15,7 @@
 use crate::decomposition::SubdomainDofs;
 use crate::error::{Error, Result};
 use crate::factor::{
-    lower_csc, lower_diagonal, scan_pivots, sym_matvec, EliminationOrder, FactorError, SparseCholesky,
+    lower_csc, lower_diagonal, scan_pivots, sym_matvec, EliminationOrder, FactorError, OrderingChoice, SparseCholesky,
 };
 use crate::kernels;
 use crate::model::Model;
@@ -120,7 +120,7 @@ impl SubdomainOperator {
                 &identity
             }
         };
-        let order = EliminationOrder::amd_in_reference(&stiffness, rank)
+        let order = EliminationOrder::best_in_reference(&stiffness, rank, OrderingChoice::Auto)
             .map_err(|e| Error::Numerical(format!("subdomain {id}: {e:?}")))?;
         if let Some(r) = kernel {
             if r.nrows() != n {
