@@ -14,6 +14,7 @@ pub mod error;
 pub mod factor;
 pub mod generate;
 pub mod kernels;
+pub mod method;
 pub mod model;
 pub mod outcome;
 pub mod partition;
