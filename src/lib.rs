@@ -18,7 +18,6 @@ pub mod method;
 pub mod model;
 pub mod outcome;
 pub mod partition;
-pub mod report;
 pub mod result;
 pub mod scene;
 pub mod settings;
