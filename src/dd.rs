@@ -1,4 +1,4 @@
-//! The seed's multilevel domain decomposition iteration (DESIGN.md §5, the
+//! The seed's multilevel domain decomposition iteration (docs/design.md §5, the
 //! paper's eqs. 20–23), linear and nonsmooth.
 //!
 //! One iteration:

@@ -55,7 +55,7 @@ fn iface_dot<'a>(x: &[Vec<f64>], y: impl Iterator<Item = &'a Vec<f64>>) -> f64 {
 }
 
 impl DdSolver {
-    /// Conjugate gradient on the interface problem (DESIGN.md §5, the
+    /// Conjugate gradient on the interface problem (docs/design.md §6, the
     /// paper's outlook), linear case. With `S(F) = F + P f(F)` the forces
     /// after the coarse step, the operator `A F = −J V_hom(F)` satisfies
     /// `⟨F₂, A F₁⟩ = S₂ᵀ 𝔽 S₁` (`𝔽 = Σ B K⁺ Bᵀ`, `Gᵀ S = 0`), so it is
