@@ -1,4 +1,4 @@
-//! The macro space and the coarse problem (DESIGN.md §4).
+//! The macro space and the coarse problem (docs/design.md §4).
 //!
 //! [`MacroBasis`]: on each interface, 3 translations, 3 rotations about the
 //! centroid and 3 extensions in the average plane (two stretches along the
@@ -135,7 +135,7 @@ pub struct CoarseContribution {
 }
 
 /// The factored coarse saddle-point system
-/// `L f − G α = a`, `Gᵀ f = b` (DESIGN.md §4).
+/// `L f − G α = a`, `Gᵀ f = b` (docs/design.md §4).
 ///
 /// `L` and `G` are block sparse (a subdomain couples only the macro
 /// unknowns of its own interfaces), so the system is solved by a Schur
@@ -424,8 +424,8 @@ impl CoarseProblem {
         CoarseProblem::new(l.nrows(), g.ncols(), &[part], kernel_owner)
     }
 
-    /// Solves for `rhs = [a; b] = [Pᵀ J K⁺ r; Rᵀ r]` (DESIGN.md sign
-    /// convention); the solution is `[f; α]`. No allocation.
+    /// Solves for `rhs = [a; b] = [Pᵀ J K⁺ r; Rᵀ r]` (the sign
+    /// convention of docs/design.md §4); the solution is `[f; α]`. No allocation.
     ///
     /// The regularised factorization is exact up to the shift, so one solve
     /// is usually within round-off; where `L` has eigenvalues below the shift

@@ -1,4 +1,4 @@
-//! The seed's multilevel domain decomposition iteration (DESIGN.md §5, the
+//! The seed's multilevel domain decomposition iteration (docs/design.md §5, the
 //! paper's eqs. 20–23), linear and nonsmooth.
 //!
 //! One iteration:
@@ -19,9 +19,10 @@ use crate::coarse::{CoarseContribution, CoarseProblem, MacroBasis};
 use crate::decomposition::Decomposition;
 use crate::error::{Error, Result};
 use crate::kernels::{self, Run, Side};
+use crate::method::cg::CgWorkspace;
+pub use crate::method::stopping::{stalled, stopping_factor, CONTRACTION_CAP, CONTRACTION_WINDOW};
 use crate::model::{Model, FIXED};
-use crate::outcome::{Outcome, Status};
-use crate::result::HistoryEntry;
+use crate::outcome::Outcome;
 use crate::settings::{MethodConfig, Preconditioner, SearchDirection, SolverSettings};
 use crate::subdomain::{InteriorProblem, SubdomainOperator};
 use faer::Mat;
@@ -71,60 +72,6 @@ pub const AUTO_D_FACTOR: f64 = 0.6;
 
 /// Power iterations used to estimate `λ_max` for the automatic `d`.
 const POWER_ITERATIONS: usize = 30;
-
-/// Indicator growth over the best value seen that counts as divergence.
-const DIVERGENCE_GROWTH: f64 = 1e6;
-
-/// Interface CG restarts (from the true residual) when its indicator grows
-/// this much above the best since the last restart...
-const CG_RESTART_GROWTH: f64 = 4.0;
-/// ...at most this often in one solve.
-const CG_MAX_RESTARTS: usize = 10;
-
-/// Restarts with a halved automatic `d` before divergence is reported.
-const MAX_D_RESTARTS: usize = 3;
-
-/// Iterations over which the contraction factor `ρ` of the indicator is
-/// measured for the stopping test.
-pub const CONTRACTION_WINDOW: usize = 10;
-
-/// Largest `ρ` used in the stopping test (caps the safety factor
-/// `1 / (1 − ρ)` at 100).
-pub const CONTRACTION_CAP: f64 = 0.99;
-
-/// Safety factor `1 / (1 − ρ)` of the stopping test. The indicator of a
-/// stationary iteration measures the last step (an interface residual, a
-/// change of `λ`), not the distance to the solution; for a linear
-/// contraction with factor `ρ` that distance is up to `1 / (1 − ρ)` times
-/// larger. Stopping on `indicator` alone left slowly converging runs 10-35×
-/// the tolerance away from the direct solution (docs/robustness.md).
-/// `history` holds the indicators so far, the current one last; `ρ` is the
-/// geometric mean ratio over the last [`CONTRACTION_WINDOW`] iterations
-/// (fewer at the start; 0.5 with a single value), clamped to
-/// `[0, CONTRACTION_CAP]`.
-pub fn stopping_factor(history: &[HistoryEntry]) -> f64 {
-    let n = history.len();
-    let rho = if n < 2 {
-        0.5
-    } else {
-        let w = (n - 1).min(CONTRACTION_WINDOW);
-        let (now, then) = (history[n - 1].indicator, history[n - 1 - w].indicator);
-        if then > 0.0 && now >= 0.0 {
-            (now / then).powf(1.0 / w as f64)
-        } else {
-            CONTRACTION_CAP
-        }
-    };
-    1.0 / (1.0 - rho.clamp(0.0, CONTRACTION_CAP))
-}
-
-/// Whether the indicator made no net progress over the last
-/// [`CONTRACTION_WINDOW`] iterations: it sits on the floor that round-off
-/// allows, so an indicator already below the tolerance is accepted there.
-pub fn stalled(history: &[HistoryEntry]) -> bool {
-    let n = history.len();
-    n > CONTRACTION_WINDOW && history[n - 1].indicator >= history[n - 1 - CONTRACTION_WINDOW].indicator
-}
 
 /// A unilateral cable seen from its subdomain: the column `h_c` of `H`
 /// (at most 6 entries, local dofs; unused slots hold [`NO_DOF`]), its
@@ -253,71 +200,63 @@ impl<'a> DdProblem<'a> {
     }
 }
 
-struct SubState {
-    op: SubdomainOperator,
+pub(crate) struct SubState {
+    pub(crate) op: SubdomainOperator,
     /// `(interface, is_lo)` for every interface of this subdomain.
-    ifaces: Vec<(usize, bool)>,
-    inv_mult: Vec<f64>,
+    pub(crate) ifaces: Vec<(usize, bool)>,
+    pub(crate) inv_mult: Vec<f64>,
     /// Constant local load (prestrain).
-    prestrain: Vec<f64>,
-    b: Vec<f64>,
-    r: Vec<f64>,
-    y: Vec<f64>,
-    v: Vec<f64>,
-    g: Vec<f64>,
+    pub(crate) prestrain: Vec<f64>,
+    pub(crate) b: Vec<f64>,
+    pub(crate) r: Vec<f64>,
+    pub(crate) y: Vec<f64>,
+    pub(crate) v: Vec<f64>,
+    pub(crate) g: Vec<f64>,
     /// Interface dofs of this subdomain (local, unique, increasing).
-    iface_dofs: Vec<u32>,
+    pub(crate) iface_dofs: Vec<u32>,
     /// Search-direction weight per local dof: 1 for a scalar `d`, the
     /// diagonal of `K_E` for the lumped choice.
-    weight: Vec<f64>,
+    pub(crate) weight: Vec<f64>,
     /// `Z_E = K_E⁺ W_E` (`n × m_E`) and the global macro index of each column.
-    z: Mat<f64>,
-    macro_cols: Vec<usize>,
-    fm: Vec<f64>,
-    alpha_off: usize,
-    alpha: Vec<f64>,
-    rt_r: Vec<f64>,
-    cables: Vec<CableColumn>,
-    lambda: Vec<f64>,
-    elong: Vec<f64>,
-    e0: Vec<f64>,
+    pub(crate) z: Mat<f64>,
+    pub(crate) macro_cols: Vec<usize>,
+    pub(crate) fm: Vec<f64>,
+    pub(crate) alpha_off: usize,
+    pub(crate) alpha: Vec<f64>,
+    pub(crate) rt_r: Vec<f64>,
+    pub(crate) cables: Vec<CableColumn>,
+    pub(crate) lambda: Vec<f64>,
+    pub(crate) elong: Vec<f64>,
+    pub(crate) e0: Vec<f64>,
     // per-iteration reductions
-    v_norm2: f64,
-    dlambda2: f64,
-    dforce2: f64,
+    pub(crate) v_norm2: f64,
+    pub(crate) dlambda2: f64,
+    pub(crate) dforce2: f64,
     /// Stiffness of each cable.
-    kc: Vec<f64>,
-    /// Interface CG: the displacement of the current forces (empty unless
-    /// the solver uses CG).
-    cg_v: Vec<f64>,
+    pub(crate) kc: Vec<f64>,
     /// Factored interior problem for the Dirichlet preconditioner of CG.
-    interior: Option<InteriorProblem>,
+    pub(crate) interior: Option<InteriorProblem>,
 }
 
-struct IfaceState {
-    lo: usize,
-    hi: usize,
-    lo_idx: Vec<u32>,
-    hi_idx: Vec<u32>,
+pub(crate) struct IfaceState {
+    pub(crate) lo: usize,
+    pub(crate) hi: usize,
+    pub(crate) lo_idx: Vec<u32>,
+    pub(crate) hi_idx: Vec<u32>,
     /// `lo_idx`, `hi_idx` as runs of consecutive local dofs: what the
     /// per-iteration kernels use (vectorised slice loops).
-    runs: Vec<Run>,
-    force: Vec<f64>,
-    jump: Vec<f64>,
+    pub(crate) runs: Vec<Run>,
+    pub(crate) force: Vec<f64>,
+    pub(crate) jump: Vec<f64>,
     /// `P_Γ` (`entries × m_Γ`), empty without coarse space.
-    p: Mat<f64>,
-    macro_off: usize,
-    pt: Vec<f64>,
-    jump_norm2: f64,
+    pub(crate) p: Mat<f64>,
+    pub(crate) macro_off: usize,
+    pub(crate) pt: Vec<f64>,
+    pub(crate) jump_norm2: f64,
     /// Lumped interface stiffness `diag(K_lo) + diag(K_hi)` per entry: turns
     /// a jump into the force it leaves unbalanced.
-    stiffness: Vec<f64>,
-    force_norm2: f64,
-    /// Interface CG: residual (jump), preconditioned residual, direction
-    /// (empty unless the solver uses CG).
-    cg_r: Vec<f64>,
-    cg_z: Vec<f64>,
-    cg_p: Vec<f64>,
+    pub(crate) stiffness: Vec<f64>,
+    pub(crate) force_norm2: f64,
 }
 
 /// Result of one DD solve: the crate's one [`Outcome`].
@@ -346,15 +285,18 @@ pub struct DdStats {
 /// The set-up DD solver: factorizations, macro space and coarse problem,
 /// reusable for any number of load cases.
 pub struct DdSolver {
-    subs: Vec<SubState>,
-    ifaces: Vec<IfaceState>,
+    pub(crate) subs: Vec<SubState>,
+    pub(crate) ifaces: Vec<IfaceState>,
     coarse: Option<CoarseProblem>,
-    d: f64,
-    opts: DdOptions,
+    /// The set-up's step length (a solve never changes it).
+    pub(crate) d: f64,
+    pub(crate) opts: DdOptions,
     n_free: usize,
-    n_cables: usize,
+    pub(crate) n_cables: usize,
     dof_maps: Vec<Vec<usize>>,
     stats: DdStats,
+    /// The CG method's workspace (`None` unless the method is cg).
+    pub(crate) cg: Option<CgWorkspace>,
 }
 
 /// The global dof that moves most in the mode `Σ_E R_E α_E`, given per
@@ -471,9 +413,6 @@ impl DdSolver {
                 jump_norm2: 0.0,
                 stiffness: Vec::new(),
                 force_norm2: 0.0,
-                cg_r: Vec::new(),
-                cg_z: Vec::new(),
-                cg_p: Vec::new(),
             })
             .collect();
         if use_coarse {
@@ -539,7 +478,6 @@ impl DdSolver {
                 v_norm2: 0.0,
                 dlambda2: 0.0,
                 dforce2: 0.0,
-                cg_v: Vec::new(),
                 interior: None,
                 op,
             });
@@ -674,15 +612,13 @@ impl DdSolver {
             n_cables,
             dof_maps: dec.subdomains.iter().map(|s| s.dofs.clone()).collect(),
             stats,
+            cg: None,
         };
         if solver.opts.krylov {
-            for it in solver.ifaces.iter_mut() {
-                let n = it.force.len();
-                (it.cg_r, it.cg_z, it.cg_p) = (vec![0.0; n], vec![0.0; n], vec![0.0; n]);
-            }
-            for st in solver.subs.iter_mut() {
-                st.cg_v = vec![0.0; st.v.len()];
-            }
+            solver.cg = Some(CgWorkspace::new(
+                solver.ifaces.iter().map(|it| it.force.len()),
+                solver.subs.iter().map(|s| s.v.len()),
+            ));
             if solver.opts.preconditioner == Preconditioner::Dirichlet {
                 let t = Instant::now();
                 solver.subs.par_iter_mut().try_for_each(|st| -> Result<()> {
@@ -912,135 +848,25 @@ impl DdSolver {
         self.iterate(warm, progress)
     }
 
-    fn iterate(&mut self, warm: bool, mut progress: Option<&mut dyn FnMut(usize, f64)>) -> Result<DdOutcome> {
+    /// Runs the configured method (a module of [`crate::method`]).
+    fn iterate(&mut self, warm: bool, progress: Option<&mut dyn FnMut(usize, f64)>) -> Result<Outcome> {
         if self.opts.krylov {
-            return self.iterate_cg(warm, progress);
+            self.iterate_cg(warm, progress)
+        } else {
+            self.iterate_stationary(warm, progress)
         }
-        let t0 = Instant::now();
-        if !warm {
-            self.reset_unknowns();
-        }
-        let has_cables = self.n_cables > 0;
-        let b_norm = self.load_norm();
-        let mut history = Vec::with_capacity(self.opts.max_iterations.min(100_000));
-        self.global_step(has_cables);
-        self.compute_jumps();
-        let mut best = f64::INFINITY;
-        let mut converged = false;
-        let mut iterations = 0;
-        let auto_d = matches!(self.opts.search_direction, SearchDirection::Auto);
-        // The step length of this solve: a halved automatic d stays here,
-        // the set-up's d is the same for every solve.
-        let mut d = self.d;
-        let mut ended: Option<(Status, String)> = None;
-        let mut restarts = 0;
-        // Iteration count at the last restart (history entries after it count).
-        let mut restart_at = 0;
-        // One subdomain without cables: the first global step is exact.
-        if self.ifaces.is_empty() && !has_cables {
-            converged = true;
-            history.push(HistoryEntry {
-                iteration: 0,
-                time_s: t0.elapsed().as_secs_f64(),
-                indicator: 0.0,
-                jump: None,
-                cable_change: None,
-            });
-        }
-        while !converged && iterations < self.opts.max_iterations {
-            iterations += 1;
-            // Local stage.
-            self.force_stage(d);
-            if has_cables {
-                self.subs.par_iter_mut().for_each(|s| {
-                    cable_elongations(s);
-                    (s.dlambda2, s.dforce2) = kernels::cable_projection(&mut s.lambda, &s.elong, &s.e0, &s.kc);
-                });
-            }
-            // Global step and coarse step.
-            self.global_step(has_cables);
-            self.compute_jumps();
-            let v2: f64 = self.subs.iter().map(|s| s.v_norm2).sum();
-            let vn = v2.sqrt().max(f64::MIN_POSITIVE);
-            let jump = self.ifaces.iter().map(|i| i.jump_norm2).sum::<f64>().sqrt() / vn;
-            let force_scale = self.force_scale(b_norm);
-            let force = self.ifaces.iter().map(|i| i.force_norm2).sum::<f64>().sqrt() / force_scale;
-            let jump = jump.max(force);
-            let cable = if has_cables {
-                let length = self.subs.iter().map(|s| s.dlambda2).sum::<f64>().sqrt() / vn;
-                let force = self.subs.iter().map(|s| s.dforce2).sum::<f64>().sqrt() / force_scale;
-                Some(length.max(force))
-            } else {
-                None
-            };
-            let indicator = jump.max(cable.unwrap_or(0.0));
-            history.push(HistoryEntry {
-                iteration: iterations,
-                time_s: t0.elapsed().as_secs_f64(),
-                indicator,
-                jump: if self.ifaces.is_empty() { None } else { Some(jump) },
-                cable_change: cable,
-            });
-            if let Some(p) = progress.as_mut() {
-                p(iterations, indicator);
-            }
-            let blew_up = !indicator.is_finite()
-                || !v2.is_finite()
-                || (indicator > DIVERGENCE_GROWTH * best && iterations > restart_at + 10);
-            if blew_up && auto_d && restarts < MAX_D_RESTARTS {
-                // The automatic d rests on an estimate of λ_max from below;
-                // when it proves too large, halve it and start again.
-                restarts += 1;
-                d *= 0.5;
-                self.reset_unknowns();
-                self.global_step(has_cables);
-                self.compute_jumps();
-                best = f64::INFINITY;
-                restart_at = iterations;
-                continue;
-            }
-            if !indicator.is_finite() || !v2.is_finite() {
-                ended = Some((
-                    Status::Diverged,
-                    "the iterate is no longer finite (NaN or Inf); lower the search direction d".into(),
-                ));
-                break;
-            }
-            if indicator > DIVERGENCE_GROWTH * best && iterations > restart_at + 10 {
-                ended = Some((
-                    Status::Diverged,
-                    format!(
-                        "the indicator grew from {best:.3e} to {indicator:.3e}; the search direction d = {d:.3e} is too large"
-                    ),
-                ));
-                break;
-            }
-            best = best.min(indicator);
-            let recent = &history[history.len() - (iterations - restart_at)..];
-            converged = indicator <= self.opts.tolerance
-                && (indicator * stopping_factor(recent) <= self.opts.tolerance || stalled(recent));
-        }
-        let (u, lambda) = self.assemble();
-        let (status, message) = ending(converged, ended);
-        Ok(Outcome {
-            u,
-            lambda,
-            status,
-            iterations,
-            history,
-            message,
-            search_direction: Some(d),
-        })
     }
 
     /// `r = b − C Bᵀ F − H k λ`, `y = K⁺ r`, coarse step, `V = y − Z f + R α`.
-    fn global_step(&mut self, with_cables: bool) {
-        self.global_step_with(with_cables, true);
+    pub(crate) fn global_step(&mut self, with_cables: bool) {
+        self.global_step_with(None, with_cables, true);
     }
 
     /// The global step; without `load`, for the interface forces alone
-    /// (`b = 0`: the homogeneous problem of the CG operator).
-    fn global_step_with(&mut self, with_cables: bool, load: bool) {
+    /// (`b = 0`: the homogeneous problem of the CG operator). `forces`
+    /// (per interface) replaces the interfaces' own forces when given: the
+    /// operator applied to another interface vector (CG's direction).
+    pub(crate) fn global_step_with(&mut self, forces: Option<&[Vec<f64>]>, with_cables: bool, load: bool) {
         let ifaces = &self.ifaces;
         self.subs.par_iter_mut().for_each(|s| {
             if load {
@@ -1051,7 +877,8 @@ impl DdSolver {
             for &(i, is_lo) in &s.ifaces {
                 let it = &ifaces[i];
                 let (side, coef) = if is_lo { (Side::Lo, -1.0) } else { (Side::Hi, 1.0) };
-                kernels::scatter_add_runs(&mut s.r, side, &it.runs, &it.force, coef);
+                let f = forces.map_or(&it.force, |f| &f[i]);
+                kernels::scatter_add_runs(&mut s.r, side, &it.runs, f, coef);
             }
             if with_cables {
                 for (c, &lam) in s.cables.iter().zip(&s.lambda) {
@@ -1121,7 +948,7 @@ impl DdSolver {
     }
 
     /// Zero interface forces and cable slacks: a cold start.
-    fn reset_unknowns(&mut self) {
+    pub(crate) fn reset_unknowns(&mut self) {
         for s in self.subs.iter_mut() {
             s.lambda.iter_mut().for_each(|v| *v = 0.0);
         }
@@ -1137,13 +964,13 @@ impl DdSolver {
     /// on large soft plates those are 10³–10⁴ × the load, and against the
     /// load alone the indicator stalled at 3e-4 on its round-off floor while
     /// the true error was 1e-8 (300 × 300 grid, 64 subdomains).
-    fn force_scale(&self, b_norm: f64) -> f64 {
+    pub(crate) fn force_scale(&self, b_norm: f64) -> f64 {
         let f2: f64 = self.ifaces.iter().map(|it| kernels::norm2(&it.force)).sum();
         b_norm.max(f2.sqrt()).max(f64::MIN_POSITIVE)
     }
 
     /// Norm of the assembled right-hand side (loads and prestrain).
-    fn load_norm(&self) -> f64 {
+    pub(crate) fn load_norm(&self) -> f64 {
         let mut b_global = vec![0.0; self.n_free];
         for (s, dofs) in self.subs.iter().zip(&self.dof_maps) {
             for (l, &d) in dofs.iter().enumerate() {
@@ -1153,310 +980,21 @@ impl DdSolver {
         kernels::norm2(&b_global).sqrt()
     }
 
-    /// Conjugate gradient on the interface problem (DESIGN.md §5, the
-    /// paper's outlook), linear case. With `S(F) = F + P f(F)` the forces
-    /// after the coarse step, the operator `A F = −J V_hom(F)` satisfies
-    /// `⟨F₂, A F₁⟩ = S₂ᵀ 𝔽 S₁` (`𝔽 = Σ B K⁺ Bᵀ`, `Gᵀ S = 0`), so it is
-    /// symmetric positive semi-definite and CG applies; the preconditioner
-    /// is `Σ_E B_E S_E B_Eᵀ` (Dirichlet) or `Σ_E B_E K_E B_Eᵀ` (lumped), see
-    /// [`Self::precondition`]. One homogeneous global step (one solve per
-    /// subdomain and one coarse solve) per iteration, plus one interior
-    /// solve per subdomain with the Dirichlet choice; the displacement is updated by linearity, so
-    /// no solve is added at the end. No allocation per iteration.
-    fn iterate_cg(&mut self, warm: bool, mut progress: Option<&mut dyn FnMut(usize, f64)>) -> Result<DdOutcome> {
-        let t0 = Instant::now();
-        if !warm {
-            self.reset_unknowns();
-        }
-        let b_norm = self.load_norm().max(f64::MIN_POSITIVE);
-        let mut history = Vec::with_capacity(self.opts.max_iterations.min(100_000));
-        let mut rz = self.cg_start();
-        let mut converged = self.ifaces.is_empty() || self.cg_indicator(b_norm) == 0.0;
-        if converged {
-            history.push(HistoryEntry {
-                iteration: 0,
-                time_s: t0.elapsed().as_secs_f64(),
-                indicator: 0.0,
-                jump: None,
-                cable_change: None,
-            });
-        }
-        let mut iterations = 0;
-        let (mut best, mut restarts, mut restart_at) = (f64::INFINITY, 0, 0);
-        // How the loop ended when not by the stopping test or the limit.
-        let mut ended: Option<(Status, String)> = None;
-        while !converged && iterations < self.opts.max_iterations {
-            iterations += 1;
-            // q = A p = −J V_hom(p): the homogeneous global step with F = p.
-            for it in self.ifaces.iter_mut() {
-                std::mem::swap(&mut it.force, &mut it.cg_p);
-            }
-            self.global_step_with(false, false);
-            self.compute_jumps();
-            for it in self.ifaces.iter_mut() {
-                std::mem::swap(&mut it.force, &mut it.cg_p);
-            }
-            let pq = -self.iface_dot(|it| (&it.cg_p, &it.jump));
-            if !(pq > 0.0) || !rz.is_finite() {
-                // The operator is positive semi-definite by construction
-                // (indefinite subdomains are refused at set-up), so pᵀAp ≤ 0
-                // is round-off: the direction lies in its null space and CG
-                // cannot reduce the residual further (e.g. the macro space
-                // covers the whole interface). Stop, with the indicator
-                // re-measured on the iterate deciding `converged`; only a
-                // non-finite value is an error.
-                if !rz.is_finite() || !pq.is_finite() {
-                    ended = Some((Status::Diverged, "the iterate is no longer finite (NaN or Inf)".into()));
-                    break;
-                }
-                let indicator = self.cg_indicator(b_norm);
-                history.push(HistoryEntry {
-                    iteration: iterations,
-                    time_s: t0.elapsed().as_secs_f64(),
-                    indicator,
-                    jump: Some(indicator),
-                    cable_change: None,
-                });
-                converged = indicator <= self.opts.tolerance;
-                if !converged {
-                    ended = Some((
-                        Status::Breakdown,
-                        format!("pᵀAp = {pq:.3e} <= 0: the search direction lies in the operator's null space"),
-                    ));
-                }
-                break;
-            }
-            let a = rz / pq;
-            // F += a p, r −= a q (q = −jump), V += a V_hom.
-            self.ifaces.par_iter_mut().for_each(|it| {
-                for ((f, r), (&p, &j)) in it
-                    .force
-                    .iter_mut()
-                    .zip(it.cg_r.iter_mut())
-                    .zip(it.cg_p.iter().zip(&it.jump))
-                {
-                    *f += a * p;
-                    *r += a * j;
-                }
-            });
-            self.subs.par_iter_mut().for_each(|s| {
-                for (v, &h) in s.cg_v.iter_mut().zip(&s.v) {
-                    *v += a * h;
-                }
-            });
-            let indicator = self.cg_indicator(b_norm);
-            history.push(HistoryEntry {
-                iteration: iterations,
-                time_s: t0.elapsed().as_secs_f64(),
-                indicator,
-                jump: Some(indicator),
-                cable_change: None,
-            });
-            if let Some(p) = progress.as_mut() {
-                p(iterations, indicator);
-            }
-            if !indicator.is_finite() {
-                ended = Some((Status::Diverged, "the iterate is no longer finite (NaN or Inf)".into()));
-                break;
-            }
-            // Below the tolerance, stop once the contraction-aware test
-            // passes, or once restarts show the residual has reached the
-            // floor that round-off allows (it cannot fall further).
-            converged = indicator <= self.opts.tolerance
-                && (restarts >= 2 || {
-                    let recent = &history[history.len() - (iterations - restart_at)..];
-                    indicator * stopping_factor(recent) <= self.opts.tolerance || stalled(recent)
-                });
-            if converged {
-                break;
-            }
-            if indicator > CG_RESTART_GROWTH * best {
-                if restarts == CG_MAX_RESTARTS {
-                    ended = Some((
-                        Status::Stalled,
-                        format!("the residual grew again after {CG_MAX_RESTARTS} restarts from the true residual"),
-                    ));
-                    break;
-                }
-                // The recurrences have drifted from the true operator (the
-                // coarse solve is exact only to round-off, and the residual
-                // fell by many orders): recompute V(F) and the residual from
-                // the forces and restart from the steepest direction.
-                restarts += 1;
-                restart_at = iterations;
-                rz = self.cg_start();
-                best = f64::INFINITY;
-                continue;
-            }
-            best = best.min(indicator);
-            self.precondition();
-            let rz_new = self.iface_dot(|it| (&it.cg_r, &it.cg_z));
-            let beta = rz_new / rz;
-            rz = rz_new;
-            self.ifaces.par_iter_mut().for_each(|it| {
-                for (p, &z) in it.cg_p.iter_mut().zip(&it.cg_z) {
-                    *p = z + beta * *p;
-                }
-            });
-        }
-        for s in self.subs.iter_mut() {
-            s.v.copy_from_slice(&s.cg_v);
-        }
-        let (u, lambda) = self.assemble();
-        let (status, message) = ending(converged, ended);
-        Ok(Outcome {
-            u,
-            lambda,
-            status,
-            iterations,
-            history,
-            message,
-            search_direction: None,
-        })
-    }
-
-    /// `out = A p = −J V_hom(p)`, the CG operator on the interface vector
-    /// (interfaces one after the other): for tests of its symmetry.
-    #[doc(hidden)]
-    pub fn apply_interface_operator(&mut self, p: &[f64], out: &mut [f64]) {
-        let mut off = 0;
-        for it in self.ifaces.iter_mut() {
-            let n = it.force.len();
-            std::mem::swap(&mut it.force, &mut it.cg_p);
-            it.force.clear();
-            it.force.extend_from_slice(&p[off..off + n]);
-            off += n;
-        }
-        self.global_step_with(false, false);
-        self.compute_jumps();
-        let mut off = 0;
-        for it in self.ifaces.iter_mut() {
-            let n = it.force.len();
-            for (o, j) in out[off..off + n].iter_mut().zip(&it.jump) {
-                *o = -j;
-            }
-            off += n;
-            std::mem::swap(&mut it.force, &mut it.cg_p);
-        }
-    }
-
-    /// (Re)starts CG from the current forces: `V = V(F)` by a global step,
-    /// `r = J V`, `z = M r`, `p = z`. Returns `⟨r, z⟩`.
-    fn cg_start(&mut self) -> f64 {
-        self.global_step(false);
-        self.compute_jumps();
-        for s in self.subs.iter_mut() {
-            s.cg_v.copy_from_slice(&s.v);
-        }
-        for it in self.ifaces.iter_mut() {
-            it.cg_r.copy_from_slice(&it.jump);
-        }
-        self.precondition();
-        for it in self.ifaces.iter_mut() {
-            it.cg_p.copy_from_slice(&it.cg_z);
-        }
-        self.iface_dot(|it| (&it.cg_r, &it.cg_z))
-    }
-
-    /// The indicator of the CG iterate (`cg_v`): the true jump `J V`, as a
-    /// length and as a force (see `iterate`). Leaves `jump` = `J V`.
-    fn cg_indicator(&mut self, b_norm: f64) -> f64 {
-        for s in self.subs.iter_mut() {
-            std::mem::swap(&mut s.v, &mut s.cg_v);
-        }
-        self.compute_jumps();
-        let v2: f64 = self.subs.iter().map(|s| kernels::norm2(&s.v)).sum();
-        for s in self.subs.iter_mut() {
-            std::mem::swap(&mut s.v, &mut s.cg_v);
-        }
-        let vn = v2.sqrt().max(f64::MIN_POSITIVE);
-        let jump = self.ifaces.iter().map(|i| i.jump_norm2).sum::<f64>().sqrt() / vn;
-        let force = self.ifaces.iter().map(|i| i.force_norm2).sum::<f64>().sqrt() / self.force_scale(b_norm);
-        if v2.is_finite() {
-            jump.max(force)
-        } else {
-            f64::NAN
-        }
-    }
-
-    /// `z = (I − P Pᵀ) Σ_E B_E S_E B_Eᵀ r` with `S_E` the Schur complement
-    /// of the subdomain on its interface (Dirichlet: the interface force
-    /// that holds the displacement `Bᵀr` with the interior free), or `K_E`
-    /// itself on the interface dofs (lumped: interior held at zero), then
-    /// the macro part removed. `range(P)` is in the null space of the CG operator (the
-    /// coarse step absorbs it); leaving it in `z` lets round-off grow there
-    /// and break the iteration on long runs.
-    fn precondition(&mut self) {
-        let ifaces = &self.ifaces;
-        self.subs.par_iter_mut().for_each(|s| {
-            for &(i, is_lo) in &s.ifaces {
-                let it = &ifaces[i];
-                let (side, coef) = if is_lo { (Side::Lo, 1.0) } else { (Side::Hi, -1.0) };
-                kernels::scatter_add_runs(&mut s.g, side, &it.runs, &it.cg_r, coef);
-            }
-            // s.r is free between global steps: K_E B_Eᵀ r (lumped) or
-            // S_E B_Eᵀ r (Dirichlet) goes there.
-            match s.interior.as_mut() {
-                Some(ip) => ip.apply_schur(&s.op, &mut s.g, &mut s.r),
-                None => s.op.apply(&s.g, &mut s.r),
-            }
-            for &l in &s.iface_dofs {
-                s.g[l as usize] = 0.0;
-            }
-        });
-        let subs = &self.subs;
-        self.ifaces.par_iter_mut().for_each(|it| {
-            kernels::jump_runs(&mut it.cg_z, &subs[it.lo].r, &subs[it.hi].r, &it.runs);
-        });
-        // Circulations of the redundant pair forces at cross points (zero
-        // net force on every subdomain) are null directions too: project z
-        // onto the differences of subdomain forces, `z ← (B_lo z − B_hi z)/m`
-        // per dof of multiplicity m (the identity where m = 2).
-        let ifaces = &self.ifaces;
-        self.subs.par_iter_mut().for_each(|s| {
-            for &(i, is_lo) in &s.ifaces {
-                let it = &ifaces[i];
-                let (side, coef) = if is_lo { (Side::Lo, 1.0) } else { (Side::Hi, -1.0) };
-                kernels::scatter_add_runs(&mut s.g, side, &it.runs, &it.cg_z, coef);
-            }
-        });
-        let subs = &self.subs;
-        self.ifaces.par_iter_mut().for_each(|it| {
-            let (lo, hi) = (&subs[it.lo], &subs[it.hi]);
-            for ((z, &a), &b) in it.cg_z.iter_mut().zip(&it.lo_idx).zip(&it.hi_idx) {
-                *z = (lo.g[a as usize] - hi.g[b as usize]) * lo.inv_mult[a as usize];
-            }
-            for q in 0..it.p.ncols() {
-                let col = it.p.col(q);
-                let c: f64 = col.iter().zip(&it.cg_z).map(|(a, b)| a * b).sum();
-                for (z, a) in it.cg_z.iter_mut().zip(col.iter()) {
-                    *z -= c * a;
-                }
-            }
-        });
-        self.subs.par_iter_mut().for_each(|s| {
-            for &l in &s.iface_dofs {
-                s.g[l as usize] = 0.0;
-            }
-        });
-    }
-
-    /// `Σ_Γ ⟨x_Γ, y_Γ⟩` over the interfaces, summed in interface order.
-    fn iface_dot(&self, pick: impl Fn(&IfaceState) -> (&Vec<f64>, &Vec<f64>)) -> f64 {
-        self.ifaces
-            .iter()
-            .map(|it| {
-                let (x, y) = pick(it);
-                x.iter().zip(y).map(|(a, b)| a * b).sum::<f64>()
-            })
-            .sum()
-    }
-
     /// `jump = J V` on every interface.
-    fn compute_jumps(&mut self) {
+    pub(crate) fn compute_jumps(&mut self) {
+        self.compute_jumps_of(None);
+    }
+
+    /// `jump = J V` with `V` the subdomains' own `v`, or `v` when given
+    /// (per subdomain: CG's iterate).
+    pub(crate) fn compute_jumps_of(&mut self, v: Option<&[Vec<f64>]>) {
         let subs = &self.subs;
         self.ifaces.par_iter_mut().for_each(|it| {
-            kernels::jump_runs(&mut it.jump, &subs[it.lo].v, &subs[it.hi].v, &it.runs);
+            let (lo, hi) = match v {
+                Some(v) => (&v[it.lo], &v[it.hi]),
+                None => (&subs[it.lo].v, &subs[it.hi].v),
+            };
+            kernels::jump_runs(&mut it.jump, lo, hi, &it.runs);
             it.jump_norm2 = kernels::norm2(&it.jump);
             it.force_norm2 = it.jump.iter().zip(&it.stiffness).map(|(j, k)| (j * k) * (j * k)).sum();
         });
@@ -1465,7 +1003,7 @@ impl DdSolver {
     /// `F += d Σ_E B_Eᵀ D_E B_E jump` (cross points couple their pair
     /// entries); `D_E` is the identity for a scalar `d` and `diag(K_E)` for
     /// the lumped search direction (the paper's "lumped" `X^D`).
-    fn force_stage(&mut self, d: f64) {
+    pub(crate) fn force_stage(&mut self, d: f64) {
         let ifaces = &self.ifaces;
         self.subs.par_iter_mut().for_each(|s| {
             for &(i, is_lo) in &s.ifaces {
@@ -1489,7 +1027,7 @@ impl DdSolver {
     }
 
     /// Global displacement (average of the subdomain copies) and slacks.
-    fn assemble(&self) -> (Vec<f64>, Vec<f64>) {
+    pub(crate) fn assemble(&self) -> (Vec<f64>, Vec<f64>) {
         let mut u = vec![0.0; self.n_free];
         let mut lambda = vec![0.0; self.n_cables];
         for (s, dofs) in self.subs.iter().zip(&self.dof_maps) {
@@ -1504,17 +1042,7 @@ impl DdSolver {
     }
 }
 
-/// The status of a finished loop: converged, the reason it broke off, or
-/// the iteration limit.
-fn ending(converged: bool, ended: Option<(Status, String)>) -> (Status, Option<String>) {
-    match (converged, ended) {
-        (true, _) => (Status::Converged, None),
-        (false, Some((status, message))) => (status, Some(message)),
-        (false, None) => (Status::IterationLimit, None),
-    }
-}
-
-fn cable_elongations(s: &mut SubState) {
+pub(crate) fn cable_elongations(s: &mut SubState) {
     for (c, e) in s.cables.iter().zip(s.elong.iter_mut()) {
         *e = c.elongation(&s.v);
     }

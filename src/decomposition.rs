@@ -1,5 +1,5 @@
 //! Subdomains and pairwise interfaces of an element-oriented partition
-//! (DESIGN.md §2).
+//! (docs/design.md §2).
 //!
 //! A free dof used by elements of several subdomains is an interface dof.
 //! Each *pair* `(E, E')` sharing dofs is an [`Interface`]; a dof shared by

@@ -1,7 +1,7 @@
 //! The direct reference solver: one sparse Cholesky of the whole truss
 //! stiffness `K`, and an exact primal–dual active set on the cable slacks.
 //!
-//! `K` never changes when cables go slack (DESIGN.md §1), so the active set
+//! `K` never changes when cables go slack (docs/design.md §1), so the active set
 //! works on the Schur complement of the slack set and keeps the single
 //! factorization: with `S` the slack set and `μ = K_S^{1/2} λ_S`,
 //!

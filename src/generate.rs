@@ -48,7 +48,7 @@ pub struct GridParams {
     /// When true (default), each element's `ea` is scaled by `L / cell`, so
     /// every bar has the axial stiffness `k = ea_bar / cell` and every cable
     /// `k = ea_cable / cell` whatever its length. This is the convention of
-    /// the measurements in DESIGN.md §5 (k_bar = 1e3, k_cable = 1e2) and of
+    /// the measurements of the design brief (k_bar = 1e3, k_cable = 1e2) and of
     /// the reference scene `grid4-slack`. When false, `ea` is used as given.
     pub uniform_stiffness: bool,
     /// Prestress (tension) of every cable. Bars get no prestress, so the

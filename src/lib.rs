@@ -1,7 +1,7 @@
 //! nsdd: multilevel domain decomposition for nonsmooth discrete structures.
 //!
 //! See the README for the method, the command line and the C ABI.
-// Index loops mirror the formulas of DESIGN.md in the numerical code, and
+// Index loops mirror the formulas of docs/design.md in the numerical code, and
 // `!(x > 0.0)` is the deliberate NaN-catching form of a positivity check.
 #![allow(clippy::needless_range_loop, clippy::neg_cmp_op_on_partial_ord)]
 pub mod bench;
@@ -14,11 +14,11 @@ pub mod error;
 pub mod factor;
 pub mod generate;
 pub mod kernels;
+pub mod method;
 pub mod model;
 pub mod outcome;
 pub mod ordering;
 pub mod partition;
-pub mod report;
 pub mod result;
 pub mod scene;
 pub mod settings;

@@ -1,7 +1,10 @@
 //! The `nsdd` command line: solve a scene, generate scenes, inspect a
-//! partition, and run the accuracy and scaling studies. The computations
-//! live in `nsdd::report`; this file parses arguments, draws progress bars
-//! (only when stderr is a terminal) and writes files.
+//! partition, and run the accuracy and scaling studies. The studies and
+//! reports live in `report` (a module of this binary, with plotters); this
+//! file parses arguments, draws progress bars (only when stderr is a
+//! terminal) and writes files. Needs the `cli` feature (default).
+
+mod report;
 
 use std::collections::BTreeMap;
 use std::io::IsTerminal;
@@ -15,10 +18,10 @@ use indicatif::{ProgressBar, ProgressStyle};
 use nsdd::error::{Error, Result};
 use nsdd::generate;
 use nsdd::model::Model;
-use nsdd::report::{self, AccuracyOptions, Event, ScalingOptions};
 use nsdd::scene::{Method, Preconditioner, Scene, SearchDirection};
 use nsdd::solve::{solve_with_progress, SolveOptions};
 use nsdd::vtk;
+use report::{AccuracyOptions, Event, ScalingOptions};
 
 #[derive(Parser)]
 #[command(

@@ -1,4 +1,4 @@
-//! The mechanical model of DESIGN.md §1, built once from a validated scene:
+//! The mechanical model of docs/design.md §1, built once from a validated scene:
 //! free-dof numbering, element geometry (`n_e`, `L_e`, `k_e = EA/L`,
 //! prestrain `e0 = t0/k`) and the effects that are actually simulated.
 //!

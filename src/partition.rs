@@ -1,5 +1,5 @@
 //! Element-oriented partition: every element belongs to exactly one
-//! subdomain (DESIGN.md §2). Recursive coordinate bisection on element
+//! subdomain (docs/design.md §2). Recursive coordinate bisection on element
 //! midpoints: balanced element counts, compact parts (hence small
 //! interfaces), and deterministic (ties broken by element index).
 //!

@@ -1,10 +1,10 @@
-//! The computations behind the `nsdd` command line, kept out of `main.rs` so
-//! that tests can call them: the human summary of a solve, exit codes, the
-//! partition report, the accuracy study (error against time to accuracy,
-//! against the direct solution) and the scaling study, with their CSV and
-//! SVG output.
+//! Part of the `nsdd` binary (a module of `main.rs`, not of the library:
+//! it needs plotters, which the library and its C users do not): the human
+//! summary of a solve, exit codes, the partition report, the accuracy study
+//! (error against time to accuracy, against the direct solution) and the
+//! scaling study, with their CSV and SVG output.
 //!
-//! Every study runs through the public facade ([`crate::solve`]), so the
+//! Every study runs through the public facade ([`nsdd::solve`]), so the
 //! times it reports are what a user of `nsdd solve` gets: setup (model,
 //! partition, factorizations, coarse problem) plus solve.
 
@@ -14,13 +14,13 @@ use std::fmt::Write as _;
 use plotters::prelude::*;
 use serde::Serialize;
 
-use crate::decomposition::QualityReport;
-use crate::error::{Error, Result};
-use crate::model::Model;
-use crate::result::SolveResult;
-use crate::scene::{ElementKind, Method, Preconditioner, Scene, SearchDirection};
-use crate::solve::{decompose, solve_with_progress, SolveOptions};
-use crate::subdomain::SubdomainOperator;
+use nsdd::decomposition::QualityReport;
+use nsdd::error::{Error, Result};
+use nsdd::model::Model;
+use nsdd::result::SolveResult;
+use nsdd::scene::{ElementKind, Method, Preconditioner, Scene, SearchDirection};
+use nsdd::solve::{decompose, solve_with_progress, SolveOptions};
+use nsdd::subdomain::SubdomainOperator;
 
 // ---------------------------------------------------------------------------
 // Exit codes and summary
@@ -168,13 +168,6 @@ pub struct Errors {
     pub error_t: f64,
     /// Elements whose slack flag differs.
     pub slack_mismatch: usize,
-}
-
-impl Errors {
-    /// `max(error_u, error_t)`.
-    pub fn max(&self) -> f64 {
-        self.error_u.max(self.error_t)
-    }
 }
 
 fn flat(v: &[[f64; 3]]) -> Vec<f64> {
@@ -834,7 +827,7 @@ fn scaling_scene(opts: &ScalingOptions, size: usize) -> Result<Scene> {
         args.insert("nx".into(), size.to_string());
         args.insert("ny".into(), size.to_string());
     }
-    crate::generate::by_name(&opts.kind, &args)
+    nsdd::generate::by_name(&opts.kind, &args)
 }
 
 /// Strong scaling (the strong size with every subdomain count) and weak

@@ -1,4 +1,4 @@
-//! Subdomain operators (DESIGN.md §3): `K_E` assembled and factored once,
+//! Subdomain operators (docs/design.md §3): `K_E` assembled and factored once,
 //! with a generalised inverse and an orthonormal kernel basis `R_E` when the
 //! subdomain floats or has local mechanisms at the cut.
 //!

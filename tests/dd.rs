@@ -38,8 +38,8 @@ fn grids_match_direct_with_1_to_64_subdomains() {
 
 #[test]
 fn multilevel_iterations_are_flat_in_the_number_of_subdomains() {
-    // The paper's scalability claim on a fixed grid (DESIGN.md §5 quotes
-    // 86 and 87 iterations for 4 and 9 subdomains on a 12×12 grid).
+    // The paper's scalability claim on a fixed grid (its measurements
+    // were 86 and 87 iterations for 4 and 9 subdomains on a 12×12 grid).
     let scene = grid_scene(12, false);
     let it4 = assert_matches_direct(&scene, Method::Multilevel, 4, 1e-8);
     let it9 = assert_matches_direct(&scene, Method::Multilevel, 9, 1e-8);
@@ -62,7 +62,7 @@ fn tensegrity_grids_match_direct() {
         });
         // With geometric stiffness, the compressed struts can make a
         // subdomain matrix indefinite although the whole one is positive
-        // definite (DESIGN.md §1): the solver must then name the subdomain.
+        // definite (docs/design.md §1): the solver must then name the subdomain.
         assert_matches_direct(&scene, Method::Multilevel, 1, 1e-8);
         for n in [2, 4, 8] {
             match solve(&scene, &opts(Method::Multilevel, n, 1e-8)) {

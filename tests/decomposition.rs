@@ -114,7 +114,7 @@ fn quality_report_counts_cross_points() {
 #[test]
 fn kernel_basis_and_generalised_inverse() {
     // A 2×2 cut of a small double-layer grid gives floating parts and local
-    // mechanisms (DESIGN.md §2).
+    // mechanisms (docs/design.md §2).
     for (n, parts) in [(4, 4), (6, 9), (8, 16)] {
         let model = grid_model(n);
         let dec = Decomposition::new(&model, Partition::bisection(&model, parts).unwrap());

@@ -1,5 +1,5 @@
 //! The direct reference solver (issue 2): analytic cases and the KKT
-//! conditions of the convex problem of DESIGN.md §1 on generated scenes.
+//! conditions of the convex problem of docs/design.md §1 on generated scenes.
 
 #![allow(clippy::needless_range_loop)]
 

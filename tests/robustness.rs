@@ -2,7 +2,7 @@
 //!
 //! Every case is checked against the direct solver or an analytic value, and
 //! every result is checked for NaN/Inf. The direct solver itself is checked
-//! independently through the KKT conditions of the convex QP of DESIGN.md §1:
+//! independently through the KKT conditions of the convex QP of docs/design.md §1:
 //! nodal equilibrium `Σ_e H_e t_e = f` at the free dofs, `t ≥ 0` on cables,
 //! and `t = 0`, `e + e0 ≤ 0` on slack ones. What was found by experiment
 //! (iteration counts, where the DD iteration stops converging) is recorded in

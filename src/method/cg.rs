@@ -1,0 +1,347 @@
+//! Conjugate gradient on the interface problem (linear case), over the
+//! set-up solver's interface operator, with its own workspace
+//! ([`CgWorkspace`]): the direction, residual and iterate live here, not
+//! in the solver's state, so the operator is applied to them directly.
+
+use crate::dd::DdSolver;
+use crate::error::Result;
+use crate::kernels::{self, Side};
+use crate::method::stopping::{ending, stalled, stopping_factor};
+use crate::outcome::{Outcome, Status};
+use crate::result::HistoryEntry;
+use rayon::prelude::*;
+use std::time::Instant;
+
+/// Interface CG restarts (from the true residual) when its indicator grows
+/// this much above the best since the last restart...
+const CG_RESTART_GROWTH: f64 = 4.0;
+/// ...at most this often in one solve.
+const CG_MAX_RESTARTS: usize = 10;
+
+/// Scratch of the interface CG, allocated at set-up (the iteration
+/// allocates nothing).
+pub(crate) struct CgWorkspace {
+    /// Per interface: residual (the jump), preconditioned residual and
+    /// search direction.
+    r: Vec<Vec<f64>>,
+    z: Vec<Vec<f64>>,
+    p: Vec<Vec<f64>>,
+    /// Per subdomain: displacement of the current forces (the iterate).
+    v: Vec<Vec<f64>>,
+}
+
+impl CgWorkspace {
+    /// Zeroed vectors of the interface and subdomain sizes.
+    pub(crate) fn new(
+        interface_sizes: impl Iterator<Item = usize> + Clone,
+        subdomain_sizes: impl Iterator<Item = usize>,
+    ) -> CgWorkspace {
+        let zeros = |s: usize| vec![0.0; s];
+        CgWorkspace {
+            r: interface_sizes.clone().map(zeros).collect(),
+            z: interface_sizes.clone().map(zeros).collect(),
+            p: interface_sizes.map(zeros).collect(),
+            v: subdomain_sizes.map(zeros).collect(),
+        }
+    }
+}
+
+/// `Σ_Γ ⟨x_Γ, y_Γ⟩` over the interfaces, summed in interface order.
+fn iface_dot<'a>(x: &[Vec<f64>], y: impl Iterator<Item = &'a Vec<f64>>) -> f64 {
+    x.iter()
+        .zip(y)
+        .map(|(x, y)| x.iter().zip(y).map(|(a, b)| a * b).sum::<f64>())
+        .sum()
+}
+
+impl DdSolver {
+    /// Conjugate gradient on the interface problem (docs/design.md §6, the
+    /// paper's outlook), linear case. With `S(F) = F + P f(F)` the forces
+    /// after the coarse step, the operator `A F = −J V_hom(F)` satisfies
+    /// `⟨F₂, A F₁⟩ = S₂ᵀ 𝔽 S₁` (`𝔽 = Σ B K⁺ Bᵀ`, `Gᵀ S = 0`), so it is
+    /// symmetric positive semi-definite and CG applies; the preconditioner
+    /// is `Σ_E B_E S_E B_Eᵀ` (Dirichlet) or `Σ_E B_E K_E B_Eᵀ` (lumped), see
+    /// [`Self::precondition`]. One homogeneous global step (one solve per
+    /// subdomain and one coarse solve) per iteration, plus one interior
+    /// solve per subdomain with the Dirichlet choice; the displacement is updated by linearity, so
+    /// no solve is added at the end. No allocation per iteration.
+    pub(crate) fn iterate_cg(&mut self, warm: bool, progress: Option<&mut dyn FnMut(usize, f64)>) -> Result<Outcome> {
+        // The workspace is taken out for the solve (no allocation) so that
+        // the operator (`&mut self`) and the CG vectors are borrowed apart.
+        let mut ws = self.cg.take().expect("the CG workspace exists when the method is cg");
+        let out = self.cg_loop(&mut ws, warm, progress);
+        self.cg = Some(ws);
+        out
+    }
+
+    fn cg_loop(
+        &mut self,
+        ws: &mut CgWorkspace,
+        warm: bool,
+        mut progress: Option<&mut dyn FnMut(usize, f64)>,
+    ) -> Result<Outcome> {
+        let t0 = Instant::now();
+        if !warm {
+            self.reset_unknowns();
+        }
+        let b_norm = self.load_norm().max(f64::MIN_POSITIVE);
+        let mut history = Vec::with_capacity(self.opts.max_iterations.min(100_000));
+        let mut rz = self.cg_start(ws);
+        let mut converged = self.ifaces.is_empty() || self.cg_indicator(ws, b_norm) == 0.0;
+        if converged {
+            history.push(HistoryEntry {
+                iteration: 0,
+                time_s: t0.elapsed().as_secs_f64(),
+                indicator: 0.0,
+                jump: None,
+                cable_change: None,
+            });
+        }
+        let mut iterations = 0;
+        let (mut best, mut restarts, mut restart_at) = (f64::INFINITY, 0, 0);
+        // How the loop ended when not by the stopping test or the limit.
+        let mut ended: Option<(Status, String)> = None;
+        while !converged && iterations < self.opts.max_iterations {
+            iterations += 1;
+            // q = A p = −J V_hom(p): the homogeneous global step with F = p
+            // (V_hom(p) is left in the subdomains' `v`, `jump` = J V_hom(p)).
+            self.global_step_with(Some(&ws.p), false, false);
+            self.compute_jumps_of(None);
+            let pq = -iface_dot(&ws.p, self.ifaces.iter().map(|it| &it.jump));
+            if !(pq > 0.0) || !rz.is_finite() {
+                // The operator is positive semi-definite by construction
+                // (indefinite subdomains are refused at set-up), so pᵀAp ≤ 0
+                // is round-off: the direction lies in its null space and CG
+                // cannot reduce the residual further (e.g. the macro space
+                // covers the whole interface). Stop, with the indicator
+                // re-measured on the iterate deciding `converged`; only a
+                // non-finite value is divergence.
+                if !rz.is_finite() || !pq.is_finite() {
+                    ended = Some((Status::Diverged, "the iterate is no longer finite (NaN or Inf)".into()));
+                    break;
+                }
+                let indicator = self.cg_indicator(ws, b_norm);
+                history.push(HistoryEntry {
+                    iteration: iterations,
+                    time_s: t0.elapsed().as_secs_f64(),
+                    indicator,
+                    jump: Some(indicator),
+                    cable_change: None,
+                });
+                converged = indicator <= self.opts.tolerance;
+                if !converged {
+                    ended = Some((
+                        Status::Breakdown,
+                        format!("pᵀAp = {pq:.3e} <= 0: the search direction lies in the operator's null space"),
+                    ));
+                }
+                break;
+            }
+            let a = rz / pq;
+            // F += a p, r −= a q (q = −jump), V += a V_hom.
+            self.ifaces
+                .par_iter_mut()
+                .zip(ws.r.par_iter_mut().zip(ws.p.par_iter()))
+                .for_each(|(it, (cr, cp))| {
+                    for ((f, r), (&p, &j)) in it.force.iter_mut().zip(cr.iter_mut()).zip(cp.iter().zip(&it.jump)) {
+                        *f += a * p;
+                        *r += a * j;
+                    }
+                });
+            ws.v.par_iter_mut().zip(self.subs.par_iter()).for_each(|(cv, s)| {
+                for (v, &h) in cv.iter_mut().zip(&s.v) {
+                    *v += a * h;
+                }
+            });
+            let indicator = self.cg_indicator(ws, b_norm);
+            history.push(HistoryEntry {
+                iteration: iterations,
+                time_s: t0.elapsed().as_secs_f64(),
+                indicator,
+                jump: Some(indicator),
+                cable_change: None,
+            });
+            if let Some(p) = progress.as_mut() {
+                p(iterations, indicator);
+            }
+            if !indicator.is_finite() {
+                ended = Some((Status::Diverged, "the iterate is no longer finite (NaN or Inf)".into()));
+                break;
+            }
+            // Below the tolerance, stop once the contraction-aware test
+            // passes, or once restarts show the residual has reached the
+            // floor that round-off allows (it cannot fall further).
+            converged = indicator <= self.opts.tolerance
+                && (restarts >= 2 || {
+                    let recent = &history[history.len() - (iterations - restart_at)..];
+                    indicator * stopping_factor(recent) <= self.opts.tolerance || stalled(recent)
+                });
+            if converged {
+                break;
+            }
+            if indicator > CG_RESTART_GROWTH * best {
+                if restarts == CG_MAX_RESTARTS {
+                    ended = Some((
+                        Status::Stalled,
+                        format!("the residual grew again after {CG_MAX_RESTARTS} restarts from the true residual"),
+                    ));
+                    break;
+                }
+                // The recurrences have drifted from the true operator (the
+                // coarse solve is exact only to round-off, and the residual
+                // fell by many orders): recompute V(F) and the residual from
+                // the forces and restart from the steepest direction.
+                restarts += 1;
+                restart_at = iterations;
+                rz = self.cg_start(ws);
+                best = f64::INFINITY;
+                continue;
+            }
+            best = best.min(indicator);
+            self.precondition(ws);
+            let rz_new = iface_dot(&ws.r, ws.z.iter());
+            let beta = rz_new / rz;
+            rz = rz_new;
+            ws.p.par_iter_mut().zip(ws.z.par_iter()).for_each(|(cp, cz)| {
+                for (p, &z) in cp.iter_mut().zip(cz) {
+                    *p = z + beta * *p;
+                }
+            });
+        }
+        for (s, cv) in self.subs.iter_mut().zip(&ws.v) {
+            s.v.copy_from_slice(cv);
+        }
+        let (u, lambda) = self.assemble();
+        let (status, message) = ending(converged, ended);
+        Ok(Outcome {
+            u,
+            lambda,
+            status,
+            iterations,
+            history,
+            message,
+            search_direction: None,
+        })
+    }
+
+    /// `out = A p = −J V_hom(p)`, the CG operator on the interface vector
+    /// (interfaces one after the other): for tests of its symmetry.
+    #[doc(hidden)]
+    pub fn apply_interface_operator(&mut self, p: &[f64], out: &mut [f64]) {
+        let mut off = 0;
+        let mut forces = Vec::with_capacity(self.ifaces.len());
+        for it in &self.ifaces {
+            let n = it.force.len();
+            forces.push(p[off..off + n].to_vec());
+            off += n;
+        }
+        self.global_step_with(Some(&forces), false, false);
+        self.compute_jumps_of(None);
+        let mut off = 0;
+        for it in &self.ifaces {
+            let n = it.force.len();
+            for (o, j) in out[off..off + n].iter_mut().zip(&it.jump) {
+                *o = -j;
+            }
+            off += n;
+        }
+    }
+
+    /// (Re)starts CG from the current forces: `V = V(F)` by a global step,
+    /// `r = J V`, `z = M r`, `p = z`. Returns `⟨r, z⟩`.
+    fn cg_start(&mut self, ws: &mut CgWorkspace) -> f64 {
+        self.global_step(false);
+        self.compute_jumps_of(None);
+        for (cv, s) in ws.v.iter_mut().zip(&self.subs) {
+            cv.copy_from_slice(&s.v);
+        }
+        for (cr, it) in ws.r.iter_mut().zip(&self.ifaces) {
+            cr.copy_from_slice(&it.jump);
+        }
+        self.precondition(ws);
+        for (cp, cz) in ws.p.iter_mut().zip(&ws.z) {
+            cp.copy_from_slice(cz);
+        }
+        iface_dot(&ws.r, ws.z.iter())
+    }
+
+    /// The indicator of the CG iterate (`ws.v`): the true jump `J V`, as a
+    /// length and as a force (see the stationary iteration). Leaves `jump`
+    /// = `J V`.
+    fn cg_indicator(&mut self, ws: &CgWorkspace, b_norm: f64) -> f64 {
+        self.compute_jumps_of(Some(&ws.v));
+        let v2: f64 = ws.v.iter().map(|v| kernels::norm2(v)).sum();
+        let vn = v2.sqrt().max(f64::MIN_POSITIVE);
+        let jump = self.ifaces.iter().map(|i| i.jump_norm2).sum::<f64>().sqrt() / vn;
+        let force = self.ifaces.iter().map(|i| i.force_norm2).sum::<f64>().sqrt() / self.force_scale(b_norm);
+        if v2.is_finite() {
+            jump.max(force)
+        } else {
+            f64::NAN
+        }
+    }
+
+    /// `z = (I − P Pᵀ) Σ_E B_E S_E B_Eᵀ r` with `S_E` the Schur complement
+    /// of the subdomain on its interface (Dirichlet: the interface force
+    /// that holds the displacement `Bᵀr` with the interior free), or `K_E`
+    /// itself on the interface dofs (lumped: interior held at zero), then
+    /// the macro part removed. `range(P)` is in the null space of the CG operator (the
+    /// coarse step absorbs it); leaving it in `z` lets round-off grow there
+    /// and break the iteration on long runs.
+    fn precondition(&mut self, ws: &mut CgWorkspace) {
+        let ifaces = &self.ifaces;
+        let cr = &ws.r;
+        self.subs.par_iter_mut().for_each(|s| {
+            for &(i, is_lo) in &s.ifaces {
+                let it = &ifaces[i];
+                let (side, coef) = if is_lo { (Side::Lo, 1.0) } else { (Side::Hi, -1.0) };
+                kernels::scatter_add_runs(&mut s.g, side, &it.runs, &cr[i], coef);
+            }
+            // s.r is free between global steps: K_E B_Eᵀ r (lumped) or
+            // S_E B_Eᵀ r (Dirichlet) goes there.
+            match s.interior.as_mut() {
+                Some(ip) => ip.apply_schur(&s.op, &mut s.g, &mut s.r),
+                None => s.op.apply(&s.g, &mut s.r),
+            }
+            for &l in &s.iface_dofs {
+                s.g[l as usize] = 0.0;
+            }
+        });
+        let subs = &self.subs;
+        self.ifaces.par_iter().zip(ws.z.par_iter_mut()).for_each(|(it, cz)| {
+            kernels::jump_runs(cz, &subs[it.lo].r, &subs[it.hi].r, &it.runs);
+        });
+        // Circulations of the redundant pair forces at cross points (zero
+        // net force on every subdomain) are null directions too: project z
+        // onto the differences of subdomain forces, `z ← (B_lo z − B_hi z)/m`
+        // per dof of multiplicity m (the identity where m = 2).
+        let ifaces = &self.ifaces;
+        let cz = &ws.z;
+        self.subs.par_iter_mut().for_each(|s| {
+            for &(i, is_lo) in &s.ifaces {
+                let it = &ifaces[i];
+                let (side, coef) = if is_lo { (Side::Lo, 1.0) } else { (Side::Hi, -1.0) };
+                kernels::scatter_add_runs(&mut s.g, side, &it.runs, &cz[i], coef);
+            }
+        });
+        let subs = &self.subs;
+        self.ifaces.par_iter().zip(ws.z.par_iter_mut()).for_each(|(it, cz)| {
+            let (lo, hi) = (&subs[it.lo], &subs[it.hi]);
+            for ((z, &a), &b) in cz.iter_mut().zip(&it.lo_idx).zip(&it.hi_idx) {
+                *z = (lo.g[a as usize] - hi.g[b as usize]) * lo.inv_mult[a as usize];
+            }
+            for q in 0..it.p.ncols() {
+                let col = it.p.col(q);
+                let c: f64 = col.iter().zip(cz.iter()).map(|(a, b)| a * b).sum();
+                for (z, a) in cz.iter_mut().zip(col.iter()) {
+                    *z -= c * a;
+                }
+            }
+        });
+        self.subs.par_iter_mut().for_each(|s| {
+            for &l in &s.iface_dofs {
+                s.g[l as usize] = 0.0;
+            }
+        });
+    }
+}
