@@ -1119,7 +1119,7 @@ pub fn accuracy_svg(report: &AccuracyReport) -> Result<String> {
         }
         // Points of every curve, in tolerance order (loose to tight, as the
         // rows are), with their tolerance labels.
-        let curves: Vec<(RGBColor, Vec<((f64, f64), String)>)> = methods
+        let curves: Vec<(RGBColor, Vec<LabelledPoint>)> = methods
             .iter()
             .enumerate()
             .map(|(i, m)| {
@@ -1285,6 +1285,9 @@ fn sparse_log_label(x: &f64) -> String {
         String::new()
     }
 }
+
+/// A point of the accuracy plot and its tolerance label.
+type LabelledPoint = ((f64, f64), String);
 
 /// A label's pixel rectangle (half-open), for placing labels apart.
 #[derive(Debug, Clone, Copy)]
