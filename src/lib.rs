@@ -27,3 +27,8 @@ pub mod subdomain;
 pub mod vtk;
 
 pub use error::{Error, Result};
+
+// The README's Rust example runs as a doc-test, so it stays pasteable.
+#[cfg(doctest)]
+#[doc = include_str!("../README.md")]
+pub struct ReadmeDoctests;

@@ -1083,13 +1083,22 @@ fn log_range(values: impl Iterator<Item = f64>) -> std::ops::Range<f64> {
 
 /// `accuracy.svg`: error `max(error_u, error_t)` against wall time (setup +
 /// solve), log-log, one curve per iterative method (a point per tolerance,
-/// joined loose to tight), the direct solve as one marked point (a decade
-/// below the smallest other error, its own error being zero by definition).
+/// joined loose to tight, each labelled with its tolerance), the direct solve
+/// as one marked point (a decade below the smallest other error, its own
+/// error being zero by definition). The legend sits beside the plot, never
+/// on the data.
 pub fn accuracy_svg(report: &AccuracyReport) -> Result<String> {
     let mut buf = String::new();
     {
-        let root = SVGBackend::with_string(&mut buf, (900, 600)).into_drawing_area();
+        let root = SVGBackend::with_string(&mut buf, (1000, 600)).into_drawing_area();
         root.fill(&WHITE).map_err(plot_err)?;
+        let titled = root
+            .titled(
+                &format!("{}: error against time to accuracy", report.scene),
+                ("sans-serif", 22),
+            )
+            .map_err(plot_err)?;
+        let (plot_area, legend_area) = titled.split_horizontally(780);
         // The direct reference has error 0 by definition: draw it a decade
         // below the smallest error of the other runs.
         let floor = report
@@ -1112,11 +1121,7 @@ pub fn accuracy_svg(report: &AccuracyReport) -> Result<String> {
         };
         let xr = log_range(report.rows.iter().map(|r| r.seconds));
         let yr = log_range(report.rows.iter().map(err));
-        let mut chart = ChartBuilder::on(&root)
-            .caption(
-                format!("{}: error against time to accuracy", report.scene),
-                ("sans-serif", 22),
-            )
+        let mut chart = ChartBuilder::on(&plot_area)
             .margin(15)
             .x_label_area_size(45)
             .y_label_area_size(80)
@@ -1127,7 +1132,7 @@ pub fn accuracy_svg(report: &AccuracyReport) -> Result<String> {
             .light_line_style(RGBColor(238, 238, 238))
             .x_desc("wall time, setup + solve [s]")
             .y_desc("relative error (max of u, t) against direct")
-            .x_label_formatter(&|x| format!("{x:.0e}"))
+            .x_label_formatter(&sparse_log_label)
             .y_label_formatter(&|y| format!("{y:.0e}"))
             .draw()
             .map_err(plot_err)?;
@@ -1137,45 +1142,200 @@ pub fn accuracy_svg(report: &AccuracyReport) -> Result<String> {
                 methods.push(&r.method);
             }
         }
-        for (i, m) in methods.iter().enumerate() {
-            let color = COLORS[i % COLORS.len()];
-            // In tolerance order (loose to tight), as the rows are.
-            let pts: Vec<(f64, f64)> = report
-                .rows
-                .iter()
-                .filter(|r| r.method == *m)
-                .map(|r| (r.seconds.max(1e-9), err(r)))
-                .collect();
+        // Points of every curve, in tolerance order (loose to tight, as the
+        // rows are), with their tolerance labels.
+        let curves: Vec<(RGBColor, Vec<LabelledPoint>)> = methods
+            .iter()
+            .enumerate()
+            .map(|(i, m)| {
+                let pts = report
+                    .rows
+                    .iter()
+                    .filter(|r| r.method == *m)
+                    .map(|r| {
+                        let label = r.tolerance.map(|t| format!("{t:e}")).unwrap_or_default();
+                        ((r.seconds.max(1e-9), err(r)), label)
+                    })
+                    .collect();
+                (COLORS[i % COLORS.len()], pts)
+            })
+            .collect();
+        for (color, pts) in &curves {
+            let xy: Vec<(f64, f64)> = pts.iter().map(|(p, _)| *p).collect();
             chart
-                .draw_series(LineSeries::new(pts.clone(), color.stroke_width(2)))
-                .map_err(plot_err)?
-                .label(*m)
-                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2)));
+                .draw_series(LineSeries::new(xy.clone(), color.stroke_width(2)))
+                .map_err(plot_err)?;
             chart
-                .draw_series(pts.iter().map(|&p| Circle::new(p, 4, color.filled())))
+                .draw_series(xy.iter().map(|&p| Circle::new(p, 4, color.filled())))
                 .map_err(plot_err)?;
         }
-        if let Some(d) = report.rows.iter().find(|r| r.method == "direct") {
+        let direct = report.rows.iter().find(|r| r.method == "direct");
+        if let Some(d) = direct {
             chart
                 .draw_series(std::iter::once(Cross::new(
                     (d.seconds.max(1e-9), err(d)),
                     8,
                     BLACK.stroke_width(3),
                 )))
-                .map_err(plot_err)?
-                .label("direct (reference, error 0, drawn at the bottom)")
-                .legend(|(x, y)| Cross::new((x + 10, y), 5, BLACK.stroke_width(2)));
+                .map_err(plot_err)?;
         }
-        chart
-            .configure_series_labels()
-            .position(SeriesLabelPosition::UpperRight)
-            .background_style(WHITE.mix(0.85))
-            .border_style(BLACK)
-            .draw()
-            .map_err(plot_err)?;
+
+        // Tolerance labels, placed in pixels where they cover no dot, no
+        // curve and no other label (a label that fits nowhere is left out;
+        // accuracy.csv has every value).
+        let (px_range, py_range) = chart.plotting_area().get_pixel_range();
+        let mut taken: Vec<LabelBox> = Vec::new();
+        for (_, pts) in &curves {
+            let px: Vec<(i32, i32)> = pts.iter().map(|(p, _)| chart.backend_coord(p)).collect();
+            for &(x, y) in &px {
+                taken.push(LabelBox::around(x, y, 5));
+            }
+            // The joining segments, sampled every few pixels.
+            for w in px.windows(2) {
+                let (a, b) = (w[0], w[1]);
+                let n = ((b.0 - a.0).abs().max((b.1 - a.1).abs()) / 3).max(1);
+                for k in 1..n {
+                    let x = a.0 + (b.0 - a.0) * k / n;
+                    let y = a.1 + (b.1 - a.1) * k / n;
+                    taken.push(LabelBox::around(x, y, 1));
+                }
+            }
+        }
+        if let Some(d) = direct {
+            let (x, y) = chart.backend_coord(&(d.seconds.max(1e-9), err(d)));
+            taken.push(LabelBox::around(x, y, 9));
+        }
+        const LABEL_H: i32 = 11;
+        for (color, pts) in &curves {
+            let style = ("sans-serif", LABEL_H).into_font().color(color);
+            for (p, label) in pts {
+                if label.is_empty() {
+                    continue;
+                }
+                let (x, y) = chart.backend_coord(p);
+                // A rough width of sans-serif digits at this size.
+                let w = 6 * label.len() as i32 + 2;
+                let h = LABEL_H;
+                // Right, left, then the four diagonals, then above and below;
+                // 7 px clears the dot's radius and its own box.
+                let candidates = [
+                    (x + 8, y - h / 2),
+                    (x - 8 - w, y - h / 2),
+                    (x + 7, y - h - 7),
+                    (x + 7, y + 7),
+                    (x - 7 - w, y - h - 7),
+                    (x - 7 - w, y + 7),
+                    (x - w / 2, y - h - 8),
+                    (x - w / 2, y + 8),
+                ];
+                let fits = candidates
+                    .iter()
+                    .map(|&(lx, ly)| LabelBox {
+                        x0: lx,
+                        y0: ly,
+                        x1: lx + w,
+                        y1: ly + h,
+                    })
+                    .find(|b| {
+                        b.x0 >= px_range.start
+                            && b.x1 < px_range.end
+                            && b.y0 >= py_range.start
+                            && b.y1 < py_range.end
+                            && !taken.iter().any(|t| t.overlaps(b))
+                    });
+                if let Some(b) = fits {
+                    root.draw(&Text::new(label.clone(), (b.x0, b.y0), style.clone()))
+                        .map_err(plot_err)?;
+                    taken.push(b);
+                }
+            }
+        }
+
+        // Legend, beside the plot.
+        let font = ("sans-serif", 14).into_font();
+        let mut y = 40;
+        for ((color, _), m) in curves.iter().zip(&methods) {
+            legend_area
+                .draw(&PathElement::new(vec![(4, y), (30, y)], color.stroke_width(2)))
+                .map_err(plot_err)?;
+            legend_area
+                .draw(&Circle::new((17, y), 4, color.filled()))
+                .map_err(plot_err)?;
+            legend_area
+                .draw(&Text::new(m.to_string(), (38, y - 7), font.clone()))
+                .map_err(plot_err)?;
+            y += 24;
+        }
+        if direct.is_some() {
+            legend_area
+                .draw(&Cross::new((17, y), 6, BLACK.stroke_width(2)))
+                .map_err(plot_err)?;
+            legend_area
+                .draw(&Text::new("direct (reference)", (38, y - 7), font.clone()))
+                .map_err(plot_err)?;
+            let small = ("sans-serif", 12).into_font().color(&RGBColor(90, 90, 90));
+            for (k, line) in ["error 0, drawn at the", "bottom"].iter().enumerate() {
+                legend_area
+                    .draw(&Text::new(
+                        line.to_string(),
+                        (38, y + 10 + 15 * k as i32),
+                        small.clone(),
+                    ))
+                    .map_err(plot_err)?;
+            }
+            y += 50;
+        }
+        let small = ("sans-serif", 12).into_font().color(&RGBColor(90, 90, 90));
+        for (k, line) in ["Each dot is one run, labelled", "with its tolerance."]
+            .iter()
+            .enumerate()
+        {
+            legend_area
+                .draw(&Text::new(line.to_string(), (4, y + 10 + 15 * k as i32), small.clone()))
+                .map_err(plot_err)?;
+        }
         root.present().map_err(plot_err)?;
     }
     Ok(buf)
+}
+
+/// A log-axis tick label at mantissas 1, 2 and 5 only: plotters puts a
+/// tick at every mantissa near the end of a decade, where the labels
+/// `7e-2 8e-2 9e-2 1e-1` ran into each other.
+fn sparse_log_label(x: &f64) -> String {
+    let label = format!("{x:.0e}");
+    if label.starts_with(['1', '2', '5']) {
+        label
+    } else {
+        String::new()
+    }
+}
+
+/// A point of the accuracy plot and its tolerance label.
+type LabelledPoint = ((f64, f64), String);
+
+/// A label's pixel rectangle (half-open), for placing labels apart.
+#[derive(Debug, Clone, Copy)]
+struct LabelBox {
+    x0: i32,
+    y0: i32,
+    x1: i32,
+    y1: i32,
+}
+
+impl LabelBox {
+    fn around(x: i32, y: i32, r: i32) -> LabelBox {
+        LabelBox {
+            x0: x - r,
+            y0: y - r,
+            x1: x + r + 1,
+            y1: y + r + 1,
+        }
+    }
+
+    fn overlaps(&self, o: &LabelBox) -> bool {
+        self.x0 < o.x1 && o.x0 < self.x1 && self.y0 < o.y1 && o.y0 < self.y1
+    }
 }
 
 /// `history-<method>.svg`: the convergence indicator at every iteration and
@@ -1365,6 +1525,130 @@ mod tests {
         assert!(s.len() <= 24, "{s:?}");
         assert_eq!(*s.last().unwrap(), 10_000);
         assert!(s.windows(2).all(|w| w[0] < w[1]));
+    }
+
+    /// `(x, y, font size, text, fill)` of every `<text>` of a plotters SVG.
+    fn svg_texts(svg: &str) -> Vec<(f64, f64, f64, String, String)> {
+        let attr = |tag: &str, name: &str| -> String {
+            let key = format!(" {name}=\"");
+            tag.find(&key)
+                .map(|i| {
+                    let rest = &tag[i + key.len()..];
+                    rest[..rest.find('"').unwrap()].to_string()
+                })
+                .unwrap_or_default()
+        };
+        svg.split("<text")
+            .skip(1)
+            .map(|t| {
+                let (tag, rest) = t.split_once('>').unwrap();
+                let body = rest.split("</text>").next().unwrap().trim().to_string();
+                let num = |n: &str| attr(tag, n).parse::<f64>().unwrap_or(f64::NAN);
+                (num("x"), num("y"), num("font-size"), body, attr(tag, "fill"))
+            })
+            .collect()
+    }
+
+    fn circles(svg: &str) -> Vec<(f64, f64)> {
+        svg.split("<circle")
+            .skip(1)
+            .map(|c| {
+                let get = |n: &str| {
+                    let key = format!(" {n}=\"");
+                    let i = c.find(&key).unwrap() + key.len();
+                    c[i..i + c[i..].find('"').unwrap()].parse::<f64>().unwrap()
+                };
+                (get("cx"), get("cy"))
+            })
+            .collect()
+    }
+
+    fn row(method: &str, tolerance: Option<f64>, err: f64, seconds: f64) -> AccuracyRow {
+        AccuracyRow {
+            method: method.into(),
+            tolerance,
+            error_u: err,
+            error_t: err,
+            slack_mismatch: 0,
+            iterations: 1,
+            seconds,
+            setup_s: 0.0,
+            solve_s: seconds,
+            converged: true,
+        }
+    }
+
+    /// Issue #20 item 8: the legend box covered the loosest point of the
+    /// slower curve (top right). The legend is now beside the plot, every
+    /// dot is labelled with its tolerance when there is room, and no label
+    /// covers a dot or another label - also where runs crowd together.
+    #[test]
+    fn accuracy_plot_labels_tolerances_and_keeps_the_legend_off_the_data() {
+        let tols = [1e-2, 1e-3, 1e-4, 1e-5, 1e-6, 1e-7, 1e-8, 1e-9, 1e-10];
+        let mut rows = vec![row("direct", None, 0.0, 0.05)];
+        for (k, &t) in tols.iter().enumerate() {
+            // multilevel: slow, its loosest run at the top right.
+            rows.push(row("multilevel", Some(t), t * 1e-1, 3.0 + 0.3 * k as f64));
+        }
+        for (k, &t) in tols.iter().enumerate() {
+            // cg: the last four runs nearly on top of each other.
+            let s = if k < 5 {
+                0.2 + 0.02 * k as f64
+            } else {
+                0.3 + 0.001 * k as f64
+            };
+            let e = if k < 5 {
+                t * 1e-2
+            } else {
+                1e-11 * (1.0 + 0.01 * k as f64)
+            };
+            rows.push(row("cg", Some(t), e, s));
+        }
+        let report = AccuracyReport {
+            scene: "synthetic".into(),
+            subdomains: 4,
+            rows,
+            histories: Vec::new(),
+            notes: Vec::new(),
+        };
+        let svg = accuracy_svg(&report).unwrap();
+        let texts = svg_texts(&svg);
+        // The legend entries are right of the 780-px plot column.
+        for name in ["multilevel", "cg", "direct (reference)"] {
+            let t = texts
+                .iter()
+                .find(|t| t.3 == name)
+                .unwrap_or_else(|| panic!("no legend entry {name}"));
+            assert!(t.0 > 780.0, "legend entry {name} at x = {}", t.0);
+        }
+        // Tolerance labels: coloured like their curve, one per well-spaced
+        // dot (every multilevel run and the first five cg runs).
+        let labels: Vec<_> = texts
+            .iter()
+            .filter(|t| t.3.starts_with("1e-") && t.4 != "#000000")
+            .collect();
+        for t in &tols {
+            let l = format!("{t:e}");
+            let n = labels.iter().filter(|x| x.3 == l).count();
+            let want = if *t >= 1e-6 { 2 } else { 1 };
+            assert!(n >= want, "label {l}: {n} of {want}");
+        }
+        // Boxes of the labels (text drawn from its top left; width at most
+        // 0.6 em per character) against each other and against the dots.
+        let boxes: Vec<[f64; 4]> = labels
+            .iter()
+            .map(|t| [t.0, t.1, t.0 + 0.6 * t.2 * t.3.len() as f64, t.1 + t.2])
+            .collect();
+        for (i, a) in boxes.iter().enumerate() {
+            for b in &boxes[i + 1..] {
+                let overlap = a[0] < b[2] && b[0] < a[2] && a[1] < b[3] && b[1] < a[3];
+                assert!(!overlap, "labels overlap: {a:?} {b:?}");
+            }
+            for &(cx, cy) in &circles(&svg) {
+                let inside = cx + 4.0 > a[0] && cx - 4.0 < a[2] && cy + 4.0 > a[1] && cy - 4.0 < a[3];
+                assert!(!inside, "label {a:?} covers the dot at ({cx}, {cy})");
+            }
+        }
     }
 
     #[test]
