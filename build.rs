@@ -1,4 +1,4 @@
-//! Generates the C header `include/nsdd.h` from `src/capi.rs` with cbindgen
+//! Generates the C header `include/nsdd.h` from `src/capi/` with cbindgen
 //! (pinned to =0.29.0 in Cargo.toml; settings in `cbindgen.toml`).
 //!
 //! The header is committed. Every build regenerates it into
@@ -10,10 +10,10 @@
 //! writes `include/nsdd.h`; it fails if the committed file differs from the
 //! freshly generated one (fix: run `cargo build` without the variable and
 //! commit `include/nsdd.h`). Outside that mode a cbindgen failure (for example
-//! while `src/capi.rs` is mid-edit) is only a warning, since rustc reports the
+//! while `src/capi/` is mid-edit) is only a warning, since rustc reports the
 //! real error.
 //!
-//! Only `src/capi.rs`, `cbindgen.toml`, `include/nsdd.h` and this file
+//! Only `src/capi/`, `cbindgen.toml`, `include/nsdd.h` and this file
 //! trigger a re-run, so the rest of the crate builds without touching
 //! cbindgen. (Watching the header costs at most one extra run after the
 //! script rewrites it; then the text is identical and nothing is written.)
@@ -23,7 +23,7 @@ use std::fs;
 use std::path::PathBuf;
 
 fn main() {
-    println!("cargo:rerun-if-changed=src/capi.rs");
+    println!("cargo:rerun-if-changed=src/capi");
     println!("cargo:rerun-if-changed=cbindgen.toml");
     println!("cargo:rerun-if-changed=build.rs");
     println!("cargo:rerun-if-changed=include/nsdd.h");
@@ -39,7 +39,7 @@ fn main() {
         .and_then(|config| {
             cbindgen::Builder::new()
                 .with_config(config)
-                .with_src(crate_dir.join("src").join("capi.rs"))
+                .with_src(crate_dir.join("src").join("capi").join("mod.rs"))
                 .generate()
                 .map_err(|e| format!("cbindgen: {e}"))
         })
@@ -65,7 +65,7 @@ fn main() {
     }
     if check {
         panic!(
-            "include/nsdd.h is out of date with src/capi.rs (fresh copy: {}); run `cargo build` and commit include/nsdd.h",
+            "include/nsdd.h is out of date with src/capi/ (fresh copy: {}); run `cargo build` and commit include/nsdd.h",
             fresh.display()
         );
     }
