@@ -89,7 +89,7 @@ pub fn decompose(model: &Model, scene: &Scene, subdomains: usize) -> Result<Deco
     let partition = if !scene.elements.subdomain.is_empty() {
         Partition::from_user(model, &scene.elements.subdomain)?
     } else {
-        Partition::bisection(model, subdomains)?
+        Partition::automatic(model, subdomains, scene.solver.partitioner)?
     };
     Ok(Decomposition::new(model, partition))
 }
