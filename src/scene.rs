@@ -221,8 +221,9 @@ pub struct SolverSettings {
     #[serde(default)]
     pub preconditioner: Preconditioner,
     /// Automatic partition into `subdomains` (ignored when the elements
-    /// carry their subdomain).
-    #[serde(default)]
+    /// carry their subdomain). Not written when it is the default, so that
+    /// scenes stay readable by versions without the field.
+    #[serde(default, skip_serializing_if = "Partitioner::is_default")]
     pub partitioner: Partitioner,
 }
 
@@ -235,6 +236,12 @@ pub enum Partitioner {
     Bisection,
     /// METIS k-way partition of the node graph.
     Metis,
+}
+
+impl Partitioner {
+    fn is_default(&self) -> bool {
+        *self == Partitioner::default()
+    }
 }
 
 impl std::str::FromStr for Partitioner {
