@@ -120,6 +120,8 @@ pub struct NsddScene {
 /// Solver settings for `nsdd_solve` and `nsdd_alg_setup`.
 pub struct NsddOptions {
     opts: SolveOptions,
+    /// Automatic partitioner, overriding the scene's (`None`: the scene's).
+    partitioner: Option<crate::scene::Partitioner>,
 }
 
 /// The result of `nsdd_solve`.
@@ -766,6 +768,7 @@ pub extern "C" fn nsdd_options_new() -> *mut NsddOptions {
     catch_unwind(|| {
         boxed(NsddOptions {
             opts: default_options(),
+            partitioner: None,
         })
     })
     .unwrap_or(std::ptr::null_mut())
@@ -785,6 +788,7 @@ pub unsafe extern "C" fn nsdd_options_from_scene(scene: *const NsddScene, out: *
         unsafe {
             out.write(boxed(NsddOptions {
                 opts: SolveOptions::from_scene(&s.scene),
+                partitioner: Some(s.scene.solver.partitioner),
             }))
         };
         Ok(())
@@ -843,6 +847,30 @@ pub unsafe extern "C" fn nsdd_options_set_preconditioner(options: *mut NsddOptio
                 )))
             }
         };
+        Ok(())
+    })
+}
+
+/// Sets the automatic partitioner, overriding the scene's `[solver]
+/// partitioner`: 0 coordinate bisection, 1 METIS k-way; any other value is
+/// INVALID_ARGUMENT. Ignored by the direct method and when the scene's
+/// elements carry their subdomain.
+///
+/// # Safety
+/// `options` must be a live options handle.
+#[unsafe(no_mangle)]
+pub unsafe extern "C" fn nsdd_options_set_partitioner(options: *mut NsddOptions, partitioner: u32) -> NsddStatus {
+    ffi_guard(|| {
+        let o = unsafe { handle_mut(options, "options")? };
+        o.partitioner = Some(match partitioner {
+            0 => crate::scene::Partitioner::Bisection,
+            1 => crate::scene::Partitioner::Metis,
+            _ => {
+                return Err(invalid(format!(
+                    "partitioner = {partitioner}: expected 0 (bisection) or 1 (metis)"
+                )))
+            }
+        });
         Ok(())
     })
 }
@@ -943,12 +971,20 @@ pub unsafe extern "C" fn nsdd_solve(
     ffi_guard(|| {
         unsafe { clear_out(out_result, "out_result")? };
         let s = unsafe { handle(scene, "scene")? };
-        let opts = if options.is_null() {
-            SolveOptions::from_scene(&s.scene)
+        let (opts, partitioner) = if options.is_null() {
+            (SolveOptions::from_scene(&s.scene), None)
         } else {
-            unsafe { handle(options, "options")? }.opts.clone()
+            let o = unsafe { handle(options, "options")? };
+            (o.opts.clone(), o.partitioner)
         };
-        let result = solve(&s.scene, &opts)?;
+        let result = match partitioner {
+            Some(p) if p != s.scene.solver.partitioner => {
+                let mut scene = s.scene.clone();
+                scene.solver.partitioner = p;
+                solve(&scene, &opts)?
+            }
+            _ => solve(&s.scene, &opts)?,
+        };
         unsafe { out_result.write(boxed(NsddResult { result })) };
         Ok(())
     })
