@@ -465,6 +465,17 @@ enum NsddStatus nsdd_options_set_preconditioner(struct NsddOptions *options,
                                                 uint32_t preconditioner);
 
 /**
+ * Sets the automatic partitioner, overriding the scene's `[solver]
+ * partitioner`: 0 coordinate bisection, 1 METIS k-way; any other value is
+ * INVALID_ARGUMENT. Ignored by the direct method and when the scene's
+ * elements carry their subdomain.
+ *
+ * # Safety
+ * `options` must be a live options handle.
+ */
+enum NsddStatus nsdd_options_set_partitioner(struct NsddOptions *options, uint32_t partitioner);
+
+/**
  * Sets the number of subdomains of the automatic partition (>= 1; ignored
  * by the direct method and at the algebraic level).
  *

@@ -18,7 +18,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use nsdd::error::{Error, Result};
 use nsdd::generate;
 use nsdd::model::Model;
-use nsdd::scene::{Method, Preconditioner, Scene, SearchDirection};
+use nsdd::scene::{Method, Partitioner, Preconditioner, Scene, SearchDirection};
 use nsdd::solve::{solve_with_progress, SolveOptions};
 use nsdd::vtk;
 use report::{AccuracyOptions, Event, ScalingOptions};
@@ -143,6 +143,9 @@ struct SolveArgs {
     /// Number of subdomains (iterative methods)
     #[arg(long, value_name = "N", value_parser = parse_count, allow_hyphen_values = true)]
     subdomains: Option<usize>,
+    /// Automatic partitioner: bisection or metis (default: the scene's [solver] partitioner)
+    #[arg(long, value_name = "P")]
+    partitioner: Option<Partitioner>,
     /// Relative tolerance on the convergence indicator
     #[arg(long, value_name = "T", value_parser = parse_positive, allow_hyphen_values = true)]
     tolerance: Option<f64>,
@@ -182,6 +185,9 @@ struct PartitionArgs {
     /// Number of subdomains (default: the scene's [solver] subdomains)
     #[arg(long, value_name = "N", value_parser = parse_count, allow_hyphen_values = true)]
     subdomains: Option<usize>,
+    /// Automatic partitioner: bisection or metis (default: the scene's [solver] partitioner)
+    #[arg(long, value_name = "P")]
+    partitioner: Option<Partitioner>,
     /// Print the report as JSON
     #[arg(long)]
     json: bool,
@@ -246,6 +252,9 @@ struct BenchArgs {
     /// Iterations timed per measurement (iteration profile)
     #[arg(long, default_value_t = 20, value_parser = parse_count, allow_hyphen_values = true)]
     iterations: usize,
+    /// Automatic partitioner of the iteration profile: bisection or metis
+    #[arg(long, value_name = "P")]
+    partitioner: Option<Partitioner>,
     /// Unilateral cables (nonsmooth) instead of the linear grid
     #[arg(long)]
     nonsmooth: bool,
@@ -454,7 +463,10 @@ fn create_dir(dir: &Path) -> Result<()> {
 }
 
 fn cmd_solve(a: SolveArgs) -> Result<i32> {
-    let scene = Scene::load(&a.scene)?;
+    let mut scene = Scene::load(&a.scene)?;
+    if let Some(p) = a.partitioner {
+        scene.solver.partitioner = p;
+    }
     let mut opts = SolveOptions::from_scene(&scene);
     if let Some(m) = a.method {
         opts.method = m.into();
@@ -592,7 +604,10 @@ fn cmd_gen(a: GenArgs) -> Result<i32> {
 }
 
 fn cmd_partition(a: PartitionArgs) -> Result<i32> {
-    let scene = Scene::load(&a.scene)?;
+    let mut scene = Scene::load(&a.scene)?;
+    if let Some(p) = a.partitioner {
+        scene.solver.partitioner = p;
+    }
     let n = a.subdomains.unwrap_or(scene.solver.subdomains);
     let r = report::partition_report(&scene, n)?;
     if a.json {
@@ -804,7 +819,10 @@ fn cmd_bench(a: BenchArgs) -> Result<i32> {
             Some(path) => vec![(0, Scene::load(path)?)],
             None => a.sizes.iter().map(|&n| (n, scene_of(n))).collect(),
         };
-        for (n, scene) in scenes {
+        for (n, mut scene) in scenes {
+            if let Some(p) = a.partitioner {
+                scene.solver.partitioner = p;
+            }
             // The direct solver's set-up on the same structure (assembly,
             // ordering, factorization), for the set-up ratio.
             let direct = nsdd::bench::direct_profile(&scene)?;

@@ -51,6 +51,97 @@ impl Partition {
         Ok(partition)
     }
 
+    /// METIS k-way partition of the truss's node graph (nodes adjacent when
+    /// an element joins them; a node weighs its element count, so parts get
+    /// balanced element counts), each element then going to its end nodes'
+    /// part (when they differ, all the elements cut between two parts go
+    /// to the smaller of the two, so that the interface is one layer of
+    /// nodes), followed by [`Partition::repair_weak_nodes`].
+    /// Deterministic (METIS runs seeded, see `ordering`).
+    pub fn metis(model: &Model, n_parts: usize) -> Result<Partition> {
+        let mut partition = Partition::metis_kway(model, n_parts)?;
+        partition.repair_weak_nodes(model);
+        Ok(partition)
+    }
+
+    /// [`Partition::metis`] without the weak-node repair.
+    pub fn metis_kway(model: &Model, n_parts: usize) -> Result<Partition> {
+        let ne = model.elements.len();
+        if n_parts == 0 {
+            return Err(Error::input("solver.subdomains", None, "must be at least 1"));
+        }
+        if n_parts > ne {
+            return Err(Error::input(
+                "solver.subdomains",
+                None,
+                format!("{n_parts} subdomains asked for but the scene has only {ne} elements"),
+            ));
+        }
+        let nn = model.coords.len();
+        let graph = crate::ordering::Graph::from_edges(nn, model.elements.iter().map(|el| (el.a, el.b)));
+        let mut weight = vec![0usize; nn];
+        for el in &model.elements {
+            weight[el.a] += 1;
+            weight[el.b] += 1;
+        }
+        let node_part = crate::ordering::kway(&graph, Some(&weight), n_parts)
+            .map_err(|m| Error::Numerical(format!("METIS partition: {m}")))?;
+        // The elements cut between two parts all go to the same one of
+        // them, so the interface is one layer of nodes (the other part's
+        // boundary); of the two, the part with fewer elements so far takes
+        // them (pairs by decreasing cut size, ties by ids), for balance.
+        let mut count = vec![0usize; n_parts];
+        let mut pairs: std::collections::BTreeMap<(usize, usize), usize> = Default::default();
+        for el in &model.elements {
+            let (pa, pb) = (node_part[el.a], node_part[el.b]);
+            if pa == pb {
+                count[pa] += 1;
+            } else {
+                *pairs.entry((pa.min(pb), pa.max(pb))).or_insert(0) += 1;
+            }
+        }
+        let mut order: Vec<((usize, usize), usize)> = pairs.into_iter().collect();
+        order.sort_by_key(|&(pq, c)| (std::cmp::Reverse(c), pq));
+        let mut taker: std::collections::BTreeMap<(usize, usize), usize> = Default::default();
+        for ((p, q), c) in order {
+            let t = if count[q] < count[p] { q } else { p };
+            count[t] += c;
+            taker.insert((p, q), t);
+        }
+        let part_of: Vec<usize> = model
+            .elements
+            .iter()
+            .map(|el| {
+                let (pa, pb) = (node_part[el.a], node_part[el.b]);
+                if pa == pb {
+                    pa
+                } else {
+                    taker[&(pa.min(pb), pa.max(pb))]
+                }
+            })
+            .collect();
+        let partition = Partition::from_part_of(part_of, n_parts);
+        if let Some(empty) = partition.elements_of.iter().position(|e| e.is_empty()) {
+            return Err(Error::input(
+                "solver.partitioner",
+                None,
+                format!(
+                    "METIS left subdomain {empty} of {n_parts} without elements: use fewer subdomains or \"bisection\""
+                ),
+            ));
+        }
+        Ok(partition)
+    }
+
+    /// The partition `partitioner` makes of `model` (with the weak-node
+    /// repair).
+    pub fn automatic(model: &Model, n_parts: usize, partitioner: crate::scene::Partitioner) -> Result<Partition> {
+        match partitioner {
+            crate::scene::Partitioner::Bisection => Partition::bisection(model, n_parts),
+            crate::scene::Partitioner::Metis => Partition::metis(model, n_parts),
+        }
+    }
+
     /// Plain recursive coordinate bisection: element counts balanced to
     /// one, without the weak-node repair.
     pub fn coordinate_bisection(model: &Model, n_parts: usize) -> Result<Partition> {

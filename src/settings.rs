@@ -151,6 +151,39 @@ pub struct SolverSettings {
     /// Preconditioner of `cg` (ignored by the other methods).
     #[serde(default)]
     pub preconditioner: Preconditioner,
+    /// Automatic partition into `subdomains` (ignored when the elements
+    /// carry their subdomain). Not written when it is the default, so that
+    /// scenes stay readable by versions without the field.
+    #[serde(default, skip_serializing_if = "Partitioner::is_default")]
+    pub partitioner: Partitioner,
+}
+
+/// How the automatic partition is made. An nsdd addition.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, Hash)]
+#[serde(rename_all = "lowercase")]
+pub enum Partitioner {
+    /// Recursive coordinate bisection of element midpoints.
+    #[default]
+    Bisection,
+    /// METIS k-way partition of the node graph.
+    Metis,
+}
+
+impl Partitioner {
+    fn is_default(&self) -> bool {
+        *self == Partitioner::default()
+    }
+}
+
+impl std::str::FromStr for Partitioner {
+    type Err = String;
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        match s {
+            "bisection" => Ok(Partitioner::Bisection),
+            "metis" => Ok(Partitioner::Metis),
+            _ => Err(format!("partitioner must be \"bisection\" or \"metis\", got '{s}'")),
+        }
+    }
 }
 
 fn default_subdomains() -> usize {
@@ -172,6 +205,7 @@ impl Default for SolverSettings {
             max_iterations: default_max_iterations(),
             search_direction: SearchDirection::Auto,
             preconditioner: Preconditioner::default(),
+            partitioner: Partitioner::default(),
         }
     }
 }

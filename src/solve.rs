@@ -36,7 +36,7 @@ use crate::model::Model;
 use crate::outcome::{Outcome, Status};
 use crate::partition::Partition;
 use crate::result::{CaseResult, HistoryEntry, SolveResult, Timings};
-use crate::scene::{Method, Scene};
+use crate::scene::{Method, Partitioner, Scene};
 pub use crate::settings::SolverSettings;
 use std::time::Instant;
 
@@ -53,12 +53,18 @@ pub enum Prepared {
     Dd(Box<DdSolver>, Decomposition),
 }
 
-/// Builds the decomposition the options ask for (user partition first).
+/// Builds the decomposition of `scene` into `subdomains` with the scene's
+/// partitioner (user partition first).
 pub fn decompose(model: &Model, scene: &Scene, subdomains: usize) -> Result<Decomposition> {
+    decompose_with(model, scene, subdomains, scene.solver.partitioner)
+}
+
+/// Builds the decomposition the options ask for (user partition first).
+pub fn decompose_with(model: &Model, scene: &Scene, subdomains: usize, partitioner: Partitioner) -> Result<Decomposition> {
     let partition = if !scene.elements.subdomain.is_empty() {
         Partition::from_user(model, &scene.elements.subdomain)?
     } else {
-        Partition::bisection(model, subdomains)?
+        Partition::automatic(model, subdomains, partitioner)?
     };
     Ok(Decomposition::new(model, partition))
 }
@@ -68,7 +74,7 @@ pub fn prepare(model: &Model, scene: &Scene, opts: &SolveOptions) -> Result<Prep
     Ok(match opts.method {
         Method::Direct => Prepared::Direct(Box::new(DirectSolver::new(model)?)),
         Method::Monolevel | Method::Multilevel | Method::Cg => {
-            let dec = decompose(model, scene, opts.subdomains)?;
+            let dec = decompose_with(model, scene, opts.subdomains, opts.partitioner)?;
             let dd = DdSolver::new(model, &dec, DdOptions::from_settings(opts)?)?;
             Prepared::Dd(Box::new(dd), dec)
         }

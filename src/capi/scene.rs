@@ -422,6 +422,30 @@ pub unsafe extern "C" fn nsdd_options_set_preconditioner(options: *mut NsddOptio
     })
 }
 
+/// Sets the automatic partitioner, overriding the scene's `[solver]
+/// partitioner`: 0 coordinate bisection, 1 METIS k-way; any other value is
+/// INVALID_ARGUMENT. Ignored by the direct method and when the scene's
+/// elements carry their subdomain.
+///
+/// # Safety
+/// `options` must be a live options handle.
+#[unsafe(no_mangle)]
+pub unsafe extern "C" fn nsdd_options_set_partitioner(options: *mut NsddOptions, partitioner: u32) -> NsddStatus {
+    ffi_guard(|| {
+        let o = unsafe { handle_mut(options, "options")? };
+        o.opts.partitioner = match partitioner {
+            0 => crate::scene::Partitioner::Bisection,
+            1 => crate::scene::Partitioner::Metis,
+            _ => {
+                return Err(invalid(format!(
+                    "partitioner = {partitioner}: expected 0 (bisection) or 1 (metis)"
+                )))
+            }
+        };
+        Ok(())
+    })
+}
+
 /// Sets the number of subdomains of the automatic partition (>= 1; ignored
 /// by the direct method and at the algebraic level).
 ///
