@@ -18,7 +18,7 @@ use nsdd::decomposition::QualityReport;
 use nsdd::error::{Error, Result};
 use nsdd::model::Model;
 use nsdd::result::SolveResult;
-use nsdd::scene::{ElementKind, Method, Preconditioner, Scene, SearchDirection};
+use nsdd::scene::{ElementKind, Method, Partitioner, Preconditioner, Scene, SearchDirection};
 use nsdd::solve::{decompose, solve_with_progress, SolveOptions};
 use nsdd::subdomain::SubdomainOperator;
 
@@ -481,6 +481,7 @@ fn method_options(
     max_iterations: usize,
     d: SearchDirection,
     preconditioner: Preconditioner,
+    partitioner: Partitioner,
 ) -> SolveOptions {
     SolveOptions {
         method,
@@ -489,6 +490,7 @@ fn method_options(
         max_iterations,
         search_direction: d,
         preconditioner,
+        partitioner,
     }
 }
 
@@ -547,6 +549,7 @@ pub fn accuracy(scene: &Scene, opts: &AccuracyOptions, mut obs: Observer<'_>) ->
         opts.max_iterations,
         opts.search_direction,
         opts.preconditioner,
+        scene.solver.partitioner,
     );
     let reference = run_solve(scene, &dopts, &mut obs)?;
     let mut rows = vec![AccuracyRow {
@@ -577,6 +580,7 @@ pub fn accuracy(scene: &Scene, opts: &AccuracyOptions, mut obs: Observer<'_>) ->
                 opts.max_iterations,
                 opts.search_direction,
                 opts.preconditioner,
+                scene.solver.partitioner,
             );
             match run_solve(scene, &o, &mut obs) {
                 Ok(r) => {
@@ -660,6 +664,7 @@ fn history_with_errors(
                     k,
                     opts.search_direction,
                     opts.preconditioner,
+                    scene.solver.partitioner,
                 );
                 match run_solve(scene, &o, obs) {
                     Ok(rk) => compare(&rk, reference),
@@ -878,6 +883,7 @@ pub fn scaling(opts: &ScalingOptions, mut obs: Observer<'_>) -> Result<ScalingRe
                 opts.max_iterations,
                 opts.search_direction,
                 scene.solver.preconditioner,
+                scene.solver.partitioner,
             );
             let reference = run_solve(&scene, &dopts, &mut obs)?;
             slot.insert((scene, reference, model.n_free, model.elements.len()));
@@ -931,6 +937,7 @@ pub fn scaling(opts: &ScalingOptions, mut obs: Observer<'_>) -> Result<ScalingRe
                 opts.max_iterations,
                 opts.search_direction,
                 scene.solver.preconditioner,
+                scene.solver.partitioner,
             );
             let mut row = ScalingRow {
                 study: study.into(),

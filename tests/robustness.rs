@@ -1320,6 +1320,7 @@ fn solve_options_given_in_rust_are_checked_like_the_scene() {
             max_iterations,
             search_direction,
             preconditioner: Default::default(),
+            partitioner: Default::default(),
         };
         match solve(&scene, &o) {
             Err(Error::InvalidInput { field, .. }) => assert_eq!(field, name),
