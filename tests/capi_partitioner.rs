@@ -27,7 +27,10 @@ fn c_partitioner_option_matches_the_rust_api_bit_for_bit() {
         assert_eq!(nsdd_options_set_subdomains(o, 8), NsddStatus::Ok);
         let mut results = Vec::new();
         for (p, code) in [(Partitioner::Bisection, 0), (Partitioner::Metis, 1)] {
+            // The settings carry the partitioner (the scene's is copied
+            // into them by from_scene): set both, as a Rust caller would.
             scene.solver.partitioner = p;
+            opts.partitioner = p;
             let want = solve(&scene, &opts).unwrap();
             assert_eq!(nsdd_options_set_partitioner(o, code), NsddStatus::Ok);
             let mut r = null_mut();
