@@ -108,6 +108,19 @@ impl MacroBasis {
         orthonormal_columns(&all, 1e-10)
     }
 
+    /// The basis of one interface from the kernel traces of its two
+    /// subdomains alone (FETI's natural coarse space, what `monolevel`
+    /// keeps): no columns between two regular subdomains.
+    pub fn kernel_block(trace_lo: &Mat<f64>, trace_hi: &Mat<f64>) -> Mat<f64> {
+        let n = trace_lo.nrows();
+        let (a, b) = (trace_lo.ncols(), trace_hi.ncols());
+        if a + b == 0 {
+            return Mat::zeros(n, 0);
+        }
+        let all = Mat::from_fn(n, a + b, |i, j| if j < a { trace_lo[(i, j)] } else { trace_hi[(i, j - a)] });
+        orthonormal_columns(&all, 1e-10)
+    }
+
     /// Assembles the per-interface blocks.
     pub fn from_blocks(blocks: Vec<Mat<f64>>) -> MacroBasis {
         let mut offset = Vec::with_capacity(blocks.len());

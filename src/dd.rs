@@ -357,27 +357,15 @@ impl DdSolver {
         let ns = dec.len();
         let n_free = dof_points.len();
         let singular: Vec<usize> = operators.iter().filter(|o| o.kernel_dim() > 0).map(|o| o.id).collect();
-        if !singular.is_empty() && (!opts.coarse || ns == 1) {
-            let what = if ns == 1 {
-                let r = operators[0].kernel();
-                let e0: Vec<f64> = (0..r.ncols()).map(|j| if j == 0 { 1.0 } else { 0.0 }).collect();
-                let at = largest_motion(&[(r, &dec.subdomains[0].dofs, &e0)])
-                    .map(|d| format!(" (a free motion, largest at {})", name_dof(d)))
-                    .unwrap_or_default();
-                format!("the structure is not supported well enough: its stiffness is singular{at}")
-            } else {
-                format!(
-                    "monolevel needs every subdomain matrix to be regular, but subdomain{} {} {} singular (floating or with a mechanism at the cut); use multilevel",
-                    if singular.len() > 1 { "s" } else { "" },
-                    singular.iter().map(|s| s.to_string()).collect::<Vec<_>>().join(", "),
-                    if singular.len() > 1 { "are" } else { "is" }
-                )
-            };
-            return Err(if ns == 1 {
-                Error::Mechanism(what)
-            } else {
-                Error::MethodNotApplicable(what)
-            });
+        if !singular.is_empty() && ns == 1 {
+            let r = operators[0].kernel();
+            let e0: Vec<f64> = (0..r.ncols()).map(|j| if j == 0 { 1.0 } else { 0.0 }).collect();
+            let at = largest_motion(&[(r, &dec.subdomains[0].dofs, &e0)])
+                .map(|d| format!(" (a free motion, largest at {})", name_dof(d)))
+                .unwrap_or_default();
+            return Err(Error::Mechanism(format!(
+                "the structure is not supported well enough: its stiffness is singular{at}"
+            )));
         }
 
         if opts.krylov && n_cables > 0 {
@@ -390,7 +378,12 @@ impl DdSolver {
                 "the interface conjugate gradient needs the coarse step".into(),
             ));
         }
-        let use_coarse = opts.coarse && !dec.interfaces.is_empty();
+        // Monolevel keeps only the coarse problem its singular subdomains
+        // need (FETI's natural coarse space: the interface traces of their
+        // kernels, no geometric macro modes); with regular subdomains it
+        // has none. Multilevel adds the macro space.
+        let natural_only = !opts.coarse;
+        let use_coarse = (opts.coarse || !singular.is_empty()) && !dec.interfaces.is_empty();
         let t_coarse = Instant::now();
         // Interfaces and their macro bases.
         let mut ifaces: Vec<IfaceState> = dec
@@ -427,7 +420,11 @@ impl DdSolver {
                     let rhi = operators[it.hi].kernel();
                     let tlo = Mat::from_fn(it.len(), rlo.ncols(), |j, q| rlo[(st.lo_idx[j] as usize, q)]);
                     let thi = Mat::from_fn(it.len(), rhi.ncols(), |j, q| rhi[(st.hi_idx[j] as usize, q)]);
-                    MacroBasis::interface_block(&points, &comp, &tlo, &thi)
+                    if natural_only {
+                        MacroBasis::kernel_block(&tlo, &thi)
+                    } else {
+                        MacroBasis::interface_block(&points, &comp, &tlo, &thi)
+                    }
                 })
                 .collect();
             let basis = MacroBasis::from_blocks(blocks);

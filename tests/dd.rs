@@ -110,14 +110,40 @@ fn monolevel_matches_direct_when_every_subdomain_is_regular() {
 }
 
 #[test]
-fn monolevel_refuses_singular_subdomains() {
+fn monolevel_solves_singular_subdomains_with_the_natural_coarse_space() {
+    // Issue #20: monolevel used to refuse any floating subdomain. It now
+    // keeps the kernel traces alone as its coarse space (FETI's natural
+    // one) and must reach the direct solution; multilevel's coarse
+    // problem adds the geometric macro modes on top of it.
     let scene = grid_scene(8, true);
-    let err = match solve(&scene, &opts(Method::Monolevel, 4, 1e-8)) {
-        Err(e) => e,
-        Ok(_) => panic!("monolevel accepted singular subdomains"),
+    assert_matches_direct(&scene, Method::Monolevel, 4, 1e-8);
+    let model = Model::from_scene(&scene).unwrap();
+    let dec = decompose(&model, &scene, 4).unwrap();
+    let setup = |coarse: bool| {
+        DdSolver::new(
+            &model,
+            &dec,
+            DdOptions {
+                coarse,
+                tolerance: 1e-8,
+                max_iterations: 10,
+                search_direction: SearchDirection::Auto,
+                krylov: false,
+                preconditioner: Default::default(),
+            },
+        )
+        .unwrap()
     };
-    assert!(matches!(err, Error::MethodNotApplicable(_)), "{err}");
-    assert!(err.to_string().contains("subdomain"), "{err}");
+    let (mono, multi) = (setup(false), setup(true));
+    assert!(mono.stats().kernel_dims.iter().any(|&k| k > 0), "no floating part to test");
+    assert!(mono.has_coarse());
+    assert_eq!(mono.stats().kernel_unknowns, multi.stats().kernel_unknowns);
+    assert!(
+        mono.stats().macro_unknowns < multi.stats().macro_unknowns,
+        "monolevel {} macro unknowns, multilevel {}",
+        mono.stats().macro_unknowns,
+        multi.stats().macro_unknowns
+    );
 }
 
 #[test]
