@@ -15,6 +15,7 @@ pub mod factor;
 pub mod generate;
 pub mod kernels;
 pub mod model;
+pub mod nonsmooth;
 pub mod partition;
 pub mod report;
 pub mod result;

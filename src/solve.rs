@@ -33,6 +33,7 @@ use crate::decomposition::Decomposition;
 use crate::direct::{DirectSolver, Equilibrium};
 use crate::error::Result;
 use crate::model::Model;
+use crate::nonsmooth::{NonsmoothCg, NonsmoothOptions};
 use crate::partition::Partition;
 use crate::result::{CaseResult, HistoryEntry, SolveResult, Timings};
 use crate::scene::{Method, Preconditioner, Scene, SearchDirection};
@@ -82,6 +83,9 @@ pub type Progress<'a> = Option<&'a mut dyn FnMut(usize, f64)>;
 pub enum Prepared {
     Direct(Box<DirectSolver>),
     Dd(Box<DdSolver>, Decomposition),
+    /// `cg` on a model with unilateral cables: active set around the
+    /// interface CG ([`crate::nonsmooth`]).
+    NonsmoothCg(Box<NonsmoothCg>),
 }
 
 /// Builds the decomposition the options ask for (user partition first).
@@ -98,6 +102,18 @@ pub fn decompose(model: &Model, scene: &Scene, subdomains: usize) -> Result<Deco
 pub fn prepare(model: &Model, scene: &Scene, opts: &SolveOptions) -> Result<Prepared> {
     Ok(match opts.method {
         Method::Direct => Prepared::Direct(Box::new(DirectSolver::new(model)?)),
+        Method::Cg if !model.cables.is_empty() => {
+            let dec = decompose(model, scene, opts.subdomains)?;
+            Prepared::NonsmoothCg(Box::new(NonsmoothCg::new(
+                model,
+                dec,
+                NonsmoothOptions {
+                    tolerance: opts.tolerance,
+                    max_iterations: opts.max_iterations,
+                    preconditioner: opts.preconditioner,
+                },
+            )?))
+        }
         Method::Monolevel | Method::Multilevel | Method::Cg => {
             let dec = decompose(model, scene, opts.subdomains)?;
             let dd = DdSolver::new(
@@ -122,6 +138,8 @@ pub struct State {
     pub equilibrium: Equilibrium,
     pub converged: bool,
     pub history: Vec<HistoryEntry>,
+    /// Outer active-set steps and DD set-ups of the nonsmooth CG.
+    pub outer_steps: Option<(usize, usize)>,
 }
 
 impl Prepared {
@@ -144,6 +162,7 @@ impl Prepared {
                     equilibrium: eq,
                     converged: true,
                     history,
+                    outer_steps: None,
                 })
             }
             Prepared::Dd(dd, _) => {
@@ -156,6 +175,16 @@ impl Prepared {
                     },
                     converged: out.converged,
                     history: out.history,
+                    outer_steps: None,
+                })
+            }
+            Prepared::NonsmoothCg(ns) => {
+                let out = ns.solve(model, f_ext, progress)?;
+                Ok(State {
+                    equilibrium: out.equilibrium,
+                    converged: out.converged,
+                    history: out.history,
+                    outer_steps: Some((out.outer_steps, out.setups)),
                 })
             }
         }
@@ -166,6 +195,16 @@ impl Prepared {
         let mut v = Vec::new();
         match self {
             Prepared::Direct(_) => v.push("direct"),
+            Prepared::NonsmoothCg(ns) => {
+                if !ns.decomposition().interfaces.is_empty() {
+                    v.push("interface");
+                }
+                v.push("cables");
+                v.push("coarse");
+                if ns.last_solver().is_some_and(|dd| dd.has_kernels()) {
+                    v.push("kernel");
+                }
+            }
             Prepared::Dd(dd, _) => {
                 if dd.has_interfaces() {
                     v.push("interface");
@@ -276,9 +315,25 @@ pub fn solve_with_progress(scene: &Scene, opts: &SolveOptions, mut progress: Pro
             dec.partition.part_of.clone(),
             (opts.method != Method::Cg).then(|| dd.search_direction()),
         ),
+        Prepared::NonsmoothCg(ns) => (
+            ns.decomposition().len(),
+            ns.decomposition().partition.part_of.clone(),
+            None,
+        ),
     };
     let mut notes = model.notes.clone();
-    if let Prepared::Dd(dd, _) = &prepared {
+    if let Some((outer, setups)) = top.outer_steps {
+        notes.push(format!(
+            "nonsmooth cg: {outer} active-set steps ({setups} DD set-ups), {} interface CG iterations in all",
+            top.equilibrium.iterations
+        ));
+    }
+    let last_dd = match &prepared {
+        Prepared::Dd(dd, _) => Some(&**dd),
+        Prepared::NonsmoothCg(ns) => ns.last_solver(),
+        Prepared::Direct(_) => None,
+    };
+    if let Some(dd) = last_dd {
         if let Some(r) = dd.coarse_residual().filter(|r| !(*r <= COARSE_RESIDUAL_NOTE)) {
             notes.push(format!(
                 "the coarse problem was solved to a backward error of only {r:.1e} (badly conditioned \

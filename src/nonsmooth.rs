@@ -1,0 +1,315 @@
+//! Nonsmooth interface CG (issue #17, design 2): a primal–dual active set
+//! on the cable slacks around the linear interface CG.
+//!
+//! Each outer step takes the structure with its current slack cables
+//! removed (zero axial stiffness, so zero tension) and solves it by the
+//! linear DD CG; the set is then updated by the rule of the direct solver
+//! (`src/direct.rs`): a slack cable whose slack `λ = −(e + e0)` is negative
+//! becomes taut, a taut cable whose strain `e + e0` is negative goes slack;
+//! a revisited set switches to Murty's least-index rule. A set whose
+//! structure is a mechanism is stepped through with its slack cables
+//! softened to [`SOFT`] of their stiffness (a guide step, as the direct
+//! solver does); a final set that is one is a named [`Error::Mechanism`].
+//!
+//! The inner solves are inexact: their tolerance follows the size of the
+//! last complementarity violation (loose while the set moves, the
+//! requested tolerance once it has settled), and each starts from the
+//! interface forces of the previous one. The set is accepted only after a
+//! solve to the requested tolerance leaves it unchanged.
+//!
+//! This first version sets up a fresh [`DdSolver`] (subdomain factors,
+//! coarse problem) for every slack set it visits; the last one is kept, so
+//! load steps and load cases whose set does not change cost no set-up.
+//! Axial stiffness only is removed from a slack cable: a geometric
+//! stiffness `t0 / L` stays, as in the direct solver's Schur-complement path.
+
+use crate::dd::{DdOptions, DdSolver};
+use crate::decomposition::Decomposition;
+use crate::direct::Equilibrium;
+use crate::error::{Error, Result};
+use crate::model::Model;
+use crate::result::HistoryEntry;
+use crate::scene::{Preconditioner, SearchDirection};
+use std::collections::HashSet;
+
+/// Stiffness fraction kept by slack cables in a step whose slack set alone
+/// would be a mechanism (the direct solver's value).
+pub const SOFT: f64 = 1e-6;
+
+/// Loosest inner tolerance (the first step, and steps after large
+/// violations): a set from a solve this accurate is close enough to guide
+/// the next one.
+pub const INNER_TOL_MAX: f64 = 1e-3;
+
+/// Inner tolerance as a fraction of the last relative violation.
+pub const INNER_TOL_FACTOR: f64 = 0.1;
+
+/// Settings of the nonsmooth CG.
+#[derive(Debug, Clone)]
+pub struct NonsmoothOptions {
+    pub tolerance: f64,
+    /// Budget of interface-operator applications over all outer steps.
+    pub max_iterations: usize,
+    pub preconditioner: Preconditioner,
+}
+
+/// One solved state of the nonsmooth CG.
+#[derive(Debug, Clone)]
+pub struct NonsmoothOutcome {
+    pub equilibrium: Equilibrium,
+    pub converged: bool,
+    /// Every inner CG iteration, numbered over the whole solve; the last
+    /// entry of each outer step carries the relative violation of the set
+    /// it found as `cable_change`.
+    pub history: Vec<HistoryEntry>,
+    /// Outer (active-set) steps, each one inner CG solve.
+    pub outer_steps: usize,
+    /// Outer steps that needed a new DD set-up (factorizations).
+    pub setups: usize,
+}
+
+/// The set-up of the nonsmooth CG: the decomposition, and the DD solver of
+/// the last slack set with its interface forces (warm start of the next
+/// solve).
+pub struct NonsmoothCg {
+    dec: Decomposition,
+    opts: NonsmoothOptions,
+    /// Slack set and softening of `solver`.
+    current: Option<(Vec<bool>, bool, Box<DdSolver>)>,
+    /// Last set a solve settled on (initial set of the next solve).
+    settled: Option<Vec<bool>>,
+}
+
+/// The structure of `model` with the given slack cables at `soft` times
+/// their axial stiffness (0: removed) and every cable bilateral: the
+/// linear problem of one outer step.
+fn linear_model(model: &Model, slack: &[bool], soft: f64) -> Model {
+    let mut m = model.clone();
+    for (c, &e) in model.cables.iter().enumerate() {
+        let el = &mut m.elements[e];
+        el.unilateral = false;
+        if slack[c] {
+            // k e0 scales with k: a removed cable carries no prestrain load.
+            el.k *= soft;
+        }
+    }
+    m.cables.clear();
+    m.effects.unilateral_cables = false;
+    m
+}
+
+impl NonsmoothCg {
+    /// Keeps the decomposition; nothing is factored before the first solve.
+    pub fn new(model: &Model, dec: Decomposition, opts: NonsmoothOptions) -> Result<NonsmoothCg> {
+        if !(opts.tolerance > 0.0) {
+            return Err(Error::input("solver.tolerance", None, "must be positive"));
+        }
+        if dec.partition.part_of.len() != model.elements.len() {
+            return Err(Error::input(
+                "elements.subdomain",
+                None,
+                "the decomposition does not belong to this model",
+            ));
+        }
+        Ok(NonsmoothCg {
+            dec,
+            opts,
+            current: None,
+            settled: None,
+        })
+    }
+
+    /// The decomposition the solver works on.
+    pub fn decomposition(&self) -> &Decomposition {
+        &self.dec
+    }
+
+    /// The DD solver of the last outer step, if any (for its coarse
+    /// residual and stages).
+    pub fn last_solver(&self) -> Option<&DdSolver> {
+        self.current.as_ref().map(|c| &*c.2)
+    }
+
+    /// Changes the stopping rule for later solves.
+    pub fn set_stopping(&mut self, tolerance: f64, max_iterations: usize) {
+        self.opts.tolerance = tolerance;
+        self.opts.max_iterations = max_iterations;
+    }
+
+    /// Makes `current` the DD solver of `(slack, soft)`, setting one up if
+    /// the kept one is for another set. Returns whether it set one up.
+    fn ensure_solver(&mut self, model: &Model, slack: &[bool], soft: bool) -> Result<bool> {
+        if let Some((s, f, _)) = &self.current {
+            if s == slack && *f == soft {
+                return Ok(false);
+            }
+        }
+        let lin = linear_model(model, slack, if soft { SOFT } else { 0.0 });
+        let dd = DdSolver::new(
+            &lin,
+            &self.dec,
+            DdOptions {
+                coarse: true,
+                krylov: true,
+                preconditioner: self.opts.preconditioner,
+                tolerance: self.opts.tolerance,
+                max_iterations: self.opts.max_iterations,
+                search_direction: SearchDirection::Auto,
+            },
+        )?;
+        self.current = Some((slack.to_vec(), soft, Box::new(dd)));
+        Ok(true)
+    }
+
+    /// Solves for the external forces `f_ext` (free dofs) with exact cable
+    /// complementarity up to the tolerance. The first set is the last
+    /// settled one (load steps and load cases), else every cable taut.
+    pub fn solve(
+        &mut self,
+        model: &Model,
+        f_ext: &[f64],
+        mut progress: Option<&mut dyn FnMut(usize, f64)>,
+    ) -> Result<NonsmoothOutcome> {
+        if f_ext.len() != model.n_free {
+            return Err(Error::input(
+                "rhs",
+                None,
+                format!("has {} entries, expected {}", f_ext.len(), model.n_free),
+            ));
+        }
+        let nc = model.cables.len();
+        let tol = self.opts.tolerance;
+        let mut slack = match &self.settled {
+            Some(s) if s.len() == nc => s.clone(),
+            _ => vec![false; nc],
+        };
+        let mut forces: Option<Vec<f64>> = self.current.as_ref().map(|c| c.2.interface_forces());
+        let mut history: Vec<HistoryEntry> = Vec::new();
+        let mut total = 0usize;
+        let mut outer = 0usize;
+        let mut setups = 0usize;
+        let mut seen: HashSet<Vec<bool>> = HashSet::new();
+        let mut murty = false;
+        // Relative size of the last violation; none measured yet.
+        let mut violation = f64::INFINITY;
+        let max_outer = 20 * nc + 100;
+        let mut g = vec![0.0; nc];
+        loop {
+            outer += 1;
+            if outer > max_outer {
+                return Err(Error::Numerical(format!(
+                    "cable active set did not settle in {max_outer} outer steps"
+                )));
+            }
+            let inner_tol = (INNER_TOL_FACTOR * violation).clamp(tol, INNER_TOL_MAX.max(tol));
+            // A set that leaves a mechanism is taken softened (a guide step).
+            let mut mechanism: Option<String> = None;
+            let soft = match self.ensure_solver(model, &slack, false) {
+                Ok(new) => {
+                    setups += new as usize;
+                    false
+                }
+                Err(Error::Mechanism(m)) => {
+                    mechanism = Some(m);
+                    setups += self.ensure_solver(model, &slack, true)? as usize;
+                    true
+                }
+                Err(e) => return Err(e),
+            };
+            let budget = self.opts.max_iterations.saturating_sub(total).max(1);
+            let dd = &mut self.current.as_mut().expect("set up above").2;
+            dd.set_stopping(inner_tol, budget);
+            let warm = match forces.as_deref() {
+                Some(f) => dd.set_interface_forces(f).is_ok(),
+                None => false,
+            };
+            let base = total;
+            let out = {
+                let mut shifted = progress.as_deref_mut().map(|p| move |i: usize, v: f64| p(base + i, v));
+                dd.solve(f_ext, warm, shifted.as_mut().map(|p| p as &mut dyn FnMut(usize, f64)))?
+            };
+            forces = Some(dd.interface_forces());
+            total += out.iterations;
+            history.extend(out.history.into_iter().map(|h| HistoryEntry {
+                iteration: base + h.iteration,
+                ..h
+            }));
+
+            // Strains and violations on the original cables.
+            let u = out.u;
+            let mut scale = 0.0f64;
+            for (c, &e) in model.cables.iter().enumerate() {
+                g[c] = model.elongation(e, &u) + model.elements[e].e0;
+                scale = scale.max(g[c].abs());
+            }
+            let scale = scale.max(f64::MIN_POSITIVE);
+            // Strain errors of an inexact solve are about its tolerance
+            // times the strain scale: smaller violations are not decided
+            // on it (cables at zero strain must not flip).
+            let thr = inner_tol * scale;
+            let mut next = slack.clone();
+            let mut first = None;
+            let mut worst = 0.0f64;
+            for c in 0..nc {
+                // Slack: λ = −g < −thr; taut: g < −thr.
+                let v = if slack[c] { g[c] } else { -g[c] };
+                if v > thr {
+                    first.get_or_insert(c);
+                    next[c] = !slack[c];
+                    worst = worst.max(v);
+                }
+            }
+            violation = worst / scale;
+            if let Some(h) = history.last_mut() {
+                h.cable_change = Some(violation);
+            }
+            if first.is_none() {
+                if inner_tol > tol && out.converged {
+                    // Settled on a loose solve: confirm at the tolerance.
+                    violation = 0.0;
+                    continue;
+                }
+                if soft {
+                    return Err(Error::Mechanism(mechanism.unwrap_or_default()));
+                }
+                let lambda = (0..nc).map(|c| if slack[c] { (-g[c]).max(0.0) } else { 0.0 }).collect();
+                self.settled = Some(slack);
+                return Ok(NonsmoothOutcome {
+                    equilibrium: Equilibrium {
+                        u,
+                        lambda,
+                        iterations: total,
+                    },
+                    converged: out.converged,
+                    history,
+                    outer_steps: outer,
+                    setups,
+                });
+            }
+            if !out.converged && total >= self.opts.max_iterations {
+                // Budget spent with the set still moving: report the state.
+                let lambda = (0..nc).map(|c| if slack[c] { (-g[c]).max(0.0) } else { 0.0 }).collect();
+                return Ok(NonsmoothOutcome {
+                    equilibrium: Equilibrium {
+                        u,
+                        lambda,
+                        iterations: total,
+                    },
+                    converged: false,
+                    history,
+                    outer_steps: outer,
+                    setups,
+                });
+            }
+            if !murty && !seen.insert(slack.clone()) {
+                murty = true;
+            }
+            if murty {
+                let c = first.expect("a violation");
+                slack[c] = !slack[c];
+            } else {
+                slack = next;
+            }
+        }
+    }
+}
