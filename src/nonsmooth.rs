@@ -33,8 +33,10 @@ use crate::scene::{Preconditioner, SearchDirection};
 use std::collections::HashSet;
 
 /// Stiffness fraction kept by slack cables in a step whose slack set alone
-/// would be a mechanism (the direct solver's value).
-pub const SOFT: f64 = 1e-6;
+/// would be a mechanism. Larger than the direct solver's 1e-6: subdomain
+/// factorizations take pivots below 1e-9 of the diagonal for mechanisms,
+/// and with a bar/cable contrast of 1e4 a 1e-6 cable falls below that.
+pub const SOFT: f64 = 1e-3;
 
 /// Loosest inner tolerance (the first step, and steps after large
 /// violations): a set from a solve this accurate is close enough to guide
@@ -96,6 +98,18 @@ fn linear_model(model: &Model, slack: &[bool], soft: f64) -> Model {
     m.cables.clear();
     m.effects.unilateral_cables = false;
     m
+}
+
+/// Names a slack set that leaves a mechanism, as the direct solver does.
+fn mechanism_message(model: &Model, slack: &[bool]) -> String {
+    let set: Vec<usize> = (0..slack.len()).filter(|&c| slack[c]).collect();
+    let names: Vec<String> = set.iter().take(8).map(|&c| model.cables[c].to_string()).collect();
+    format!(
+        "the structure becomes a mechanism when its {} slack cables are removed (elements {}{})",
+        set.len(),
+        names.join(", "),
+        if set.len() > 8 { ", ..." } else { "" }
+    )
 }
 
 impl NonsmoothCg {
@@ -204,14 +218,25 @@ impl NonsmoothCg {
             let inner_tol = (INNER_TOL_FACTOR * violation).clamp(tol, INNER_TOL_MAX.max(tol));
             // A set that leaves a mechanism is taken softened (a guide step).
             let mut mechanism: Option<String> = None;
+            let t_setup = std::time::Instant::now();
             let soft = match self.ensure_solver(model, &slack, false) {
                 Ok(new) => {
                     setups += new as usize;
                     false
                 }
-                Err(Error::Mechanism(m)) => {
-                    mechanism = Some(m);
-                    setups += self.ensure_solver(model, &slack, true)? as usize;
+                // Removing cables can leave a subdomain with a mechanism
+                // whose round-off pivot reads as indefinite: both are what
+                // the softened step is for. If the softened set-up fails
+                // too, that error is the structure's own.
+                Err(e @ (Error::Mechanism(_) | Error::IndefiniteSubdomain { .. })) => {
+                    mechanism = Some(format!("{} ({e})", mechanism_message(model, &slack)));
+                    match self.ensure_solver(model, &slack, true) {
+                        Ok(new) => setups += new as usize,
+                        Err(Error::Mechanism(_) | Error::IndefiniteSubdomain { .. }) => {
+                            return Err(Error::Mechanism(mechanism.unwrap_or_default()))
+                        }
+                        Err(e) => return Err(e),
+                    }
                     true
                 }
                 Err(e) => return Err(e),
@@ -224,6 +249,8 @@ impl NonsmoothCg {
                 None => false,
             };
             let base = total;
+            let setup_s = t_setup.elapsed().as_secs_f64();
+            let t_inner = std::time::Instant::now();
             let out = {
                 let mut shifted = progress.as_deref_mut().map(|p| move |i: usize, v: f64| p(base + i, v));
                 dd.solve(f_ext, warm, shifted.as_mut().map(|p| p as &mut dyn FnMut(usize, f64)))?
@@ -260,6 +287,21 @@ impl NonsmoothCg {
                 }
             }
             violation = worst / scale;
+            if std::env::var_os("NSDD_NS_DEBUG").is_some() {
+                eprintln!(
+                    "outer {outer}: {} slack, soft {soft}, inner tol {inner_tol:.1e}, {} its (conv {}), setup {setup_s:.3}s, cg {:.3}s, {} flips, violation {violation:.2e}",
+                    slack.iter().filter(|&&s| s).count(),
+                    out.iterations,
+                    out.converged,
+                    t_inner.elapsed().as_secs_f64(),
+                    next.iter().zip(&slack).filter(|(a, b)| a != b).count()
+                );
+                let st = self.current.as_ref().unwrap().2.stats();
+                eprintln!(
+                    "   kernel {} macro {} nnz_l {} factor {:.3}s coarse {:.3}s",
+                    st.kernel_unknowns, st.macro_unknowns, st.nnz_l, st.factor_s, st.coarse_s
+                );
+            }
             if let Some(h) = history.last_mut() {
                 h.cable_change = Some(violation);
             }
