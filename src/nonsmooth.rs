@@ -28,9 +28,11 @@ use crate::decomposition::Decomposition;
 use crate::direct::Equilibrium;
 use crate::error::{Error, Result};
 use crate::model::Model;
+use crate::model::FIXED;
+use crate::partition::Partition;
 use crate::result::HistoryEntry;
 use crate::scene::{Preconditioner, SearchDirection};
-use std::collections::HashSet;
+use std::collections::{HashMap, HashSet};
 
 /// Stiffness fraction kept by slack cables in a step whose slack set alone
 /// would be a mechanism. Larger than the direct solver's 1e-6: subdomain
@@ -76,10 +78,45 @@ pub struct NonsmoothOutcome {
 pub struct NonsmoothCg {
     dec: Decomposition,
     opts: NonsmoothOptions,
-    /// Slack set and softening of `solver`.
-    current: Option<(Vec<bool>, bool, Box<DdSolver>)>,
+    /// The DD solver of the last outer step.
+    current: Option<Step>,
     /// Last set a solve settled on (initial set of the next solve).
     settled: Option<Vec<bool>>,
+}
+
+/// One outer step's linear problem, set up.
+struct Step {
+    slack: Vec<bool>,
+    soft: bool,
+    dd: Box<DdSolver>,
+    /// Decomposition of the structure without its slack cables (`None`:
+    /// the solver's own, for a softened step).
+    dec: Option<Decomposition>,
+}
+
+/// Interface forces keyed by `(lo, hi, global dof)`: decompositions of
+/// different slack sets share most of their interface entries, and a warm
+/// start carries the forces of the shared ones over.
+type Forces = HashMap<(usize, usize, usize), f64>;
+
+fn keyed_forces(dec: &Decomposition, forces: &[f64]) -> Forces {
+    let mut m = HashMap::with_capacity(forces.len());
+    for it in &dec.interfaces {
+        for j in it.start..it.end {
+            m.insert((it.lo, it.hi, dec.entry_dof[j]), forces[j]);
+        }
+    }
+    m
+}
+
+fn forces_on(dec: &Decomposition, forces: &Forces) -> Vec<f64> {
+    let mut v = vec![0.0; dec.entry_dof.len()];
+    for it in &dec.interfaces {
+        for j in it.start..it.end {
+            v[j] = forces.get(&(it.lo, it.hi, dec.entry_dof[j])).copied().unwrap_or(0.0);
+        }
+    }
+    v
 }
 
 /// The structure of `model` with the given slack cables at `soft` times
@@ -112,6 +149,39 @@ fn mechanism_message(model: &Model, slack: &[bool]) -> String {
     )
 }
 
+/// The structure without its slack cables and its decomposition: the
+/// partition restricted to the remaining elements, weak nodes repaired.
+/// A node left without any element, or a subdomain left empty, is reported
+/// as a mechanism (the caller then takes the softened step).
+fn reduced_problem(model: &Model, dec: &Decomposition, slack: &[bool]) -> Result<(Model, Decomposition)> {
+    let mut is_slack = vec![false; model.elements.len()];
+    for (c, &e) in model.cables.iter().enumerate() {
+        is_slack[e] = slack[c];
+    }
+    let keep: Vec<usize> = (0..model.elements.len()).filter(|&e| !is_slack[e]).collect();
+    let mut m = model.clone();
+    m.elements = keep.iter().map(|&e| model.elements[e].clone()).collect();
+    for el in m.elements.iter_mut() {
+        el.unilateral = false;
+    }
+    m.cables.clear();
+    m.effects.unilateral_cables = false;
+    let mut used = vec![false; model.coords.len()];
+    for el in &m.elements {
+        used[el.a] = true;
+        used[el.b] = true;
+    }
+    if let Some(n) = (0..used.len()).find(|&n| !used[n] && m.node_dofs[n].iter().any(|&d| d != FIXED)) {
+        return Err(Error::Mechanism(format!("node {n} is held by slack cables only")));
+    }
+    let part: Vec<usize> = keep.iter().map(|&e| dec.partition.part_of[e]).collect();
+    let mut partition =
+        Partition::from_user(&m, &part).map_err(|_| Error::Mechanism("a subdomain has slack cables only".into()))?;
+    partition.repair_weak_nodes(&m);
+    let d = Decomposition::new(&m, partition);
+    Ok((m, d))
+}
+
 impl NonsmoothCg {
     /// Keeps the decomposition; nothing is factored before the first solve.
     pub fn new(model: &Model, dec: Decomposition, opts: NonsmoothOptions) -> Result<NonsmoothCg> {
@@ -133,6 +203,10 @@ impl NonsmoothCg {
         })
     }
 
+    fn keyed(&self, st: &Step) -> Forces {
+        keyed_forces(st.dec.as_ref().unwrap_or(&self.dec), &st.dd.interface_forces())
+    }
+
     /// The decomposition the solver works on.
     pub fn decomposition(&self) -> &Decomposition {
         &self.dec
@@ -141,7 +215,7 @@ impl NonsmoothCg {
     /// The DD solver of the last outer step, if any (for its coarse
     /// residual and stages).
     pub fn last_solver(&self) -> Option<&DdSolver> {
-        self.current.as_ref().map(|c| &*c.2)
+        self.current.as_ref().map(|c| &*c.dd)
     }
 
     /// Changes the stopping rule for later solves.
@@ -152,26 +226,44 @@ impl NonsmoothCg {
 
     /// Makes `current` the DD solver of `(slack, soft)`, setting one up if
     /// the kept one is for another set. Returns whether it set one up.
+    ///
+    /// Exact steps drop the slack cables from the structure and from the
+    /// partition, whose weak nodes are then repaired: a node at the cut
+    /// held in one subdomain by slack cables only would otherwise be a local
+    /// mechanism there, and hundreds of them (a 32² grid, 16 subdomains)
+    /// make the coarse problem large and its solve 10-40× slower.
     fn ensure_solver(&mut self, model: &Model, slack: &[bool], soft: bool) -> Result<bool> {
-        if let Some((s, f, _)) = &self.current {
-            if s == slack && *f == soft {
+        if let Some(st) = &self.current {
+            if st.slack == slack && st.soft == soft {
                 return Ok(false);
             }
         }
-        let lin = linear_model(model, slack, if soft { SOFT } else { 0.0 });
-        let dd = DdSolver::new(
-            &lin,
-            &self.dec,
-            DdOptions {
-                coarse: true,
-                krylov: true,
-                preconditioner: self.opts.preconditioner,
-                tolerance: self.opts.tolerance,
-                max_iterations: self.opts.max_iterations,
-                search_direction: SearchDirection::Auto,
-            },
-        )?;
-        self.current = Some((slack.to_vec(), soft, Box::new(dd)));
+        let opts = DdOptions {
+            coarse: true,
+            krylov: true,
+            preconditioner: self.opts.preconditioner,
+            tolerance: self.opts.tolerance,
+            max_iterations: self.opts.max_iterations,
+            search_direction: SearchDirection::Auto,
+        };
+        let step = if soft || !slack.iter().any(|&s| s) {
+            let lin = linear_model(model, slack, if soft { SOFT } else { 0.0 });
+            Step {
+                slack: slack.to_vec(),
+                soft,
+                dd: Box::new(DdSolver::new(&lin, &self.dec, opts)?),
+                dec: None,
+            }
+        } else {
+            let (lin, dec) = reduced_problem(model, &self.dec, slack)?;
+            Step {
+                slack: slack.to_vec(),
+                soft,
+                dd: Box::new(DdSolver::new(&lin, &dec, opts)?),
+                dec: Some(dec),
+            }
+        };
+        self.current = Some(step);
         Ok(true)
     }
 
@@ -197,7 +289,7 @@ impl NonsmoothCg {
             Some(s) if s.len() == nc => s.clone(),
             _ => vec![false; nc],
         };
-        let mut forces: Option<Vec<f64>> = self.current.as_ref().map(|c| c.2.interface_forces());
+        let mut forces: Option<Forces> = self.current.as_ref().map(|c| self.keyed(c));
         let mut history: Vec<HistoryEntry> = Vec::new();
         let mut total = 0usize;
         let mut outer = 0usize;
@@ -242,10 +334,12 @@ impl NonsmoothCg {
                 Err(e) => return Err(e),
             };
             let budget = self.opts.max_iterations.saturating_sub(total).max(1);
-            let dd = &mut self.current.as_mut().expect("set up above").2;
+            let step = self.current.as_mut().expect("set up above");
+            let dec = step.dec.as_ref().unwrap_or(&self.dec);
+            let dd = &mut step.dd;
             dd.set_stopping(inner_tol, budget);
-            let warm = match forces.as_deref() {
-                Some(f) => dd.set_interface_forces(f).is_ok(),
+            let warm = match forces.as_ref() {
+                Some(f) => dd.set_interface_forces(&forces_on(dec, f)).is_ok(),
                 None => false,
             };
             let base = total;
@@ -255,7 +349,7 @@ impl NonsmoothCg {
                 let mut shifted = progress.as_deref_mut().map(|p| move |i: usize, v: f64| p(base + i, v));
                 dd.solve(f_ext, warm, shifted.as_mut().map(|p| p as &mut dyn FnMut(usize, f64)))?
             };
-            forces = Some(dd.interface_forces());
+            forces = Some(keyed_forces(dec, &dd.interface_forces()));
             total += out.iterations;
             history.extend(out.history.into_iter().map(|h| HistoryEntry {
                 iteration: base + h.iteration,
@@ -296,7 +390,7 @@ impl NonsmoothCg {
                     t_inner.elapsed().as_secs_f64(),
                     next.iter().zip(&slack).filter(|(a, b)| a != b).count()
                 );
-                let st = self.current.as_ref().unwrap().2.stats();
+                let st = self.current.as_ref().unwrap().dd.stats();
                 eprintln!(
                     "   kernel {} macro {} nnz_l {} factor {:.3}s coarse {:.3}s",
                     st.kernel_unknowns, st.macro_unknowns, st.nnz_l, st.factor_s, st.coarse_s
