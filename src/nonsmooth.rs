@@ -36,9 +36,15 @@ use std::collections::{HashMap, HashSet};
 
 /// Stiffness fraction kept by slack cables in a step whose slack set alone
 /// would be a mechanism. Larger than the direct solver's 1e-6: subdomain
-/// factorizations take pivots below 1e-9 of the diagonal for mechanisms,
-/// and with a bar/cable contrast of 1e4 a 1e-6 cable falls below that.
+/// factorizations take pivots below 1e-9 of the diagonal for mechanisms
+/// (and below 1e-6 for suspects), and with a bar/cable contrast of 1e4 a
+/// 1e-6 cable falls below that.
 pub const SOFT: f64 = 1e-3;
+
+/// Least softened stiffness, as a fraction of the stiffest element: keeps
+/// the softened pivots above the subdomain's suspect ratio (1e-6) whatever
+/// the contrast (the README's tower: bars 1e4 × the cables).
+pub const SOFT_FLOOR: f64 = 1e-4;
 
 /// Loosest inner tolerance (the first step, and steps after large
 /// violations): a set from a solve this accurate is close enough to guide
@@ -124,12 +130,17 @@ fn forces_on(dec: &Decomposition, forces: &Forces) -> Vec<f64> {
 /// linear problem of one outer step.
 fn linear_model(model: &Model, slack: &[bool], soft: f64) -> Model {
     let mut m = model.clone();
+    let k_max = model.elements.iter().fold(0.0f64, |a, e| a.max(e.k));
     for (c, &e) in model.cables.iter().enumerate() {
         let el = &mut m.elements[e];
         el.unilateral = false;
         if slack[c] {
             // k e0 scales with k: a removed cable carries no prestrain load.
-            el.k *= soft;
+            el.k = if soft > 0.0 {
+                (soft * el.k).max(SOFT_FLOOR * k_max)
+            } else {
+                0.0
+            };
         }
     }
     m.cables.clear();
@@ -153,7 +164,7 @@ fn mechanism_message(model: &Model, slack: &[bool]) -> String {
 /// partition restricted to the remaining elements, weak nodes repaired.
 /// A node left without any element, or a subdomain left empty, is reported
 /// as a mechanism (the caller then takes the softened step).
-fn reduced_problem(model: &Model, dec: &Decomposition, slack: &[bool]) -> Result<(Model, Decomposition)> {
+fn reduced_problem(model: &Model, dec: &Decomposition, slack: &[bool], repair: bool) -> Result<(Model, Decomposition)> {
     let mut is_slack = vec![false; model.elements.len()];
     for (c, &e) in model.cables.iter().enumerate() {
         is_slack[e] = slack[c];
@@ -177,7 +188,9 @@ fn reduced_problem(model: &Model, dec: &Decomposition, slack: &[bool]) -> Result
     let part: Vec<usize> = keep.iter().map(|&e| dec.partition.part_of[e]).collect();
     let mut partition =
         Partition::from_user(&m, &part).map_err(|_| Error::Mechanism("a subdomain has slack cables only".into()))?;
-    partition.repair_weak_nodes(&m);
+    if repair {
+        partition.repair_weak_nodes(&m);
+    }
     let d = Decomposition::new(&m, partition);
     Ok((m, d))
 }
@@ -255,12 +268,39 @@ impl NonsmoothCg {
                 dec: None,
             }
         } else {
-            let (lin, dec) = reduced_problem(model, &self.dec, slack)?;
+            // A local mechanism at the cut can leave a round-off pivot that
+            // the subdomain takes for indefinite (bar/cable contrast 1e4):
+            // the same set is tried on the partition as it is, then with the
+            // slack cables kept at zero stiffness, before it counts as a
+            // mechanism.
+            let mut first_err = None;
+            let mut found = None;
+            for repair in [true, false] {
+                match reduced_problem(model, &self.dec, slack, repair)
+                    .and_then(|(lin, dec)| Ok((DdSolver::new(&lin, &dec, opts.clone())?, dec)))
+                {
+                    Ok((dd, dec)) => {
+                        found = Some((dd, Some(dec)));
+                        break;
+                    }
+                    Err(e) => {
+                        first_err.get_or_insert(e);
+                    }
+                }
+            }
+            if found.is_none() {
+                let lin = linear_model(model, slack, 0.0);
+                match DdSolver::new(&lin, &self.dec, opts) {
+                    Ok(dd) => found = Some((dd, None)),
+                    Err(e) => return Err(first_err.unwrap_or(e)),
+                }
+            }
+            let (dd, dec) = found.expect("set above");
             Step {
                 slack: slack.to_vec(),
                 soft,
-                dd: Box::new(DdSolver::new(&lin, &dec, opts)?),
-                dec: Some(dec),
+                dd: Box::new(dd),
+                dec,
             }
         };
         self.current = Some(step);
