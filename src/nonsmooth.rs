@@ -20,8 +20,17 @@
 //! This first version sets up a fresh [`DdSolver`] (subdomain factors,
 //! coarse problem) for every slack set it visits; the last one is kept, so
 //! load steps and load cases whose set does not change cost no set-up.
-//! Axial stiffness only is removed from a slack cable: a geometric
-//! stiffness `t0 / L` stays, as in the direct solver's Schur-complement path.
+//! A softened step keeps a slack cable's geometric stiffness `t0 / L`, an
+//! exact one drops the cable altogether (the direct solver's refactoring
+//! path; its Schur-complement path keeps `t0 / L`: the two differ only
+//! with `geometric_stiffness` on).
+//!
+//! `NSDD_NS_DEBUG=1` prints one line per outer step (set size, inner
+//! tolerance and iterations, set-up and CG time, coarse sizes) to stderr.
+//!
+//! Not done yet: reusing the factorizations of subdomains whose slack set
+//! did not change (each new set factors every subdomain and rebuilds the
+//! coarse problem), and low-rank updates instead.
 
 use crate::dd::{DdOptions, DdSolver};
 use crate::decomposition::Decomposition;
@@ -48,8 +57,12 @@ pub const SOFT_FLOOR: f64 = 1e-4;
 
 /// Loosest inner tolerance (the first step, and steps after large
 /// violations): a set from a solve this accurate is close enough to guide
-/// the next one.
-pub const INNER_TOL_MAX: f64 = 1e-3;
+/// the next one. Total inner iterations on the 32² grid to 1e-8 with
+/// 4/16/64 subdomains: 400/502/351 with 1e-3, 338/471/331 with 1e-2, and
+/// 422 (16 subdomains) with 1e-1; the outer steps stay at 12. A loose solve
+/// is not cheap: the CG's contraction-aware stopping test still asks for
+/// 25-40 iterations per step.
+pub const INNER_TOL_MAX: f64 = 1e-2;
 
 /// Inner tolerance as a fraction of the last relative violation.
 pub const INNER_TOL_FACTOR: f64 = 0.1;
