@@ -98,7 +98,7 @@ typedef enum NsddMethod {
     NSDD_METHOD_MULTILEVEL = 2,
     /**
      * Conjugate gradient on the interface problem with the same coarse
-     * step (linear case only).
+     * step; with unilateral cables, an active set around it.
      */
     NSDD_METHOD_CG = 3,
 } NsddMethod;

@@ -660,6 +660,33 @@ impl DdSolver {
         self.opts.max_iterations = max_iterations;
     }
 
+    /// The interface forces of the last solve, interfaces one after the
+    /// other (the layout of the decomposition's interface vector).
+    pub fn interface_forces(&self) -> Vec<f64> {
+        self.ifaces.iter().flat_map(|it| it.force.iter().copied()).collect()
+    }
+
+    /// Sets the interface forces a `warm` solve starts from: another
+    /// solver's [`Self::interface_forces`] on the same decomposition (the
+    /// nonsmooth CG warm-starts each active-set step from the last one).
+    pub fn set_interface_forces(&mut self, forces: &[f64]) -> Result<()> {
+        let n: usize = self.ifaces.iter().map(|it| it.force.len()).sum();
+        if forces.len() != n {
+            return Err(Error::input(
+                "interface forces",
+                None,
+                format!("has {} entries, expected {n}", forces.len()),
+            ));
+        }
+        let mut off = 0;
+        for it in self.ifaces.iter_mut() {
+            let m = it.force.len();
+            it.force.copy_from_slice(&forces[off..off + m]);
+            off += m;
+        }
+        Ok(())
+    }
+
     /// Set-up sizes and the chosen `d`.
     pub fn stats(&self) -> &DdStats {
         &self.stats

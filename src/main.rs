@@ -60,7 +60,7 @@ enum MethodArg {
     Direct,
     Monolevel,
     Multilevel,
-    /// Interface conjugate gradient with the coarse step (linear case)
+    /// Interface conjugate gradient with the coarse step (with unilateral cables: active set around it)
     Cg,
 }
 

@@ -74,6 +74,9 @@ pub struct Outcome {
     /// The step length `d` this solve ended with (the stationary iteration
     /// only; a halved automatic `d` stays local to the solve).
     pub search_direction: Option<f64>,
+    /// The nonsmooth cg's active-set steps and DD set-ups (`None` for the
+    /// other methods); `iterations` counts its inner CG iterations in all.
+    pub outer_steps: Option<(usize, usize)>,
 }
 
 impl Outcome {

@@ -19,7 +19,8 @@ pub enum Method {
     /// The paper's iteration with the kernel-enriched macro space.
     Multilevel,
     /// Conjugate gradient on the interface problem with the same coarse
-    /// step (the paper's outlook; linear case only). An nsdd addition.
+    /// step (the paper's outlook); with unilateral cables, a primal–dual
+    /// active set around it (`nonsmooth`). An nsdd addition.
     Cg,
 }
 

@@ -33,6 +33,7 @@ use crate::decomposition::Decomposition;
 use crate::direct::DirectSolver;
 use crate::error::Result;
 use crate::model::Model;
+use crate::nonsmooth::{NonsmoothCg, NonsmoothOptions};
 use crate::outcome::{Outcome, Status};
 use crate::partition::Partition;
 use crate::result::{CaseResult, HistoryEntry, SolveResult, Timings};
@@ -51,6 +52,9 @@ pub type Progress<'a> = Option<&'a mut dyn FnMut(usize, f64)>;
 pub enum Prepared {
     Direct(Box<DirectSolver>),
     Dd(Box<DdSolver>, Decomposition),
+    /// `cg` on a model with unilateral cables: active set around the
+    /// interface CG ([`crate::nonsmooth`]).
+    NonsmoothCg(Box<NonsmoothCg>),
 }
 
 /// Builds the decomposition of `scene` into `subdomains` with the scene's
@@ -73,6 +77,19 @@ pub fn decompose_with(model: &Model, scene: &Scene, subdomains: usize, partition
 pub fn prepare(model: &Model, scene: &Scene, opts: &SolveOptions) -> Result<Prepared> {
     Ok(match opts.method {
         Method::Direct => Prepared::Direct(Box::new(DirectSolver::new(model)?)),
+        Method::Cg if !model.cables.is_empty() => {
+            opts.validate()?;
+            let dec = decompose_with(model, scene, opts.subdomains, opts.partitioner)?;
+            Prepared::NonsmoothCg(Box::new(NonsmoothCg::new(
+                model,
+                dec,
+                NonsmoothOptions {
+                    tolerance: opts.tolerance,
+                    max_iterations: opts.max_iterations,
+                    preconditioner: opts.preconditioner,
+                },
+            )?))
+        }
         Method::Monolevel | Method::Multilevel | Method::Cg => {
             let dec = decompose_with(model, scene, opts.subdomains, opts.partitioner)?;
             let dd = DdSolver::new(model, &dec, DdOptions::from_settings(opts)?)?;
@@ -107,9 +124,31 @@ impl Prepared {
                     history,
                     message: None,
                     search_direction: None,
+                    outer_steps: None,
                 })
             }
             Prepared::Dd(dd, _) => dd.solve(f_ext, warm, progress),
+            Prepared::NonsmoothCg(ns) => {
+                let max_iterations = ns.max_iterations();
+                let out = ns.solve(model, f_ext, progress)?;
+                let status = if out.converged {
+                    Status::Converged
+                } else if out.equilibrium.iterations >= max_iterations {
+                    Status::IterationLimit
+                } else {
+                    Status::Stalled
+                };
+                Ok(Outcome {
+                    u: out.equilibrium.u,
+                    lambda: out.equilibrium.lambda,
+                    status,
+                    iterations: out.equilibrium.iterations,
+                    history: out.history,
+                    message: None,
+                    search_direction: None,
+                    outer_steps: Some((out.outer_steps, out.setups)),
+                })
+            }
         }
     }
 
@@ -118,6 +157,16 @@ impl Prepared {
         let mut v = Vec::new();
         match self {
             Prepared::Direct(_) => v.push("direct"),
+            Prepared::NonsmoothCg(ns) => {
+                if !ns.decomposition().interfaces.is_empty() {
+                    v.push("interface");
+                }
+                v.push("cables");
+                v.push("coarse");
+                if ns.last_solver().is_some_and(|dd| dd.has_kernels()) {
+                    v.push("kernel");
+                }
+            }
             Prepared::Dd(dd, _) => {
                 if dd.has_interfaces() {
                     v.push("interface");
@@ -240,6 +289,7 @@ pub fn solve_with_progress(scene: &Scene, opts: &SolveOptions, mut progress: Pro
     let (n_sub, element_subdomain) = match &prepared {
         Prepared::Direct(_) => (1, Vec::new()),
         Prepared::Dd(_, dec) => (dec.len(), dec.partition.part_of.clone()),
+        Prepared::NonsmoothCg(ns) => (ns.decomposition().len(), ns.decomposition().partition.part_of.clone()),
     };
     // The `d` the top solve ended with (a halved automatic d included); CG
     // has no step length: only the stationary iteration reports one.
@@ -253,7 +303,18 @@ pub fn solve_with_progress(scene: &Scene, opts: &SolveOptions, mut progress: Pro
         .find(|(s, _)| !s.is_converged())
         .unwrap_or((Status::Converged, None));
     let mut notes = model.notes.clone();
-    if let Prepared::Dd(dd, _) = &prepared {
+    if let Some((outer, setups)) = top.outer_steps {
+        notes.push(format!(
+            "nonsmooth cg: {outer} active-set steps ({setups} DD set-ups), {} interface CG iterations in all",
+            top.iterations
+        ));
+    }
+    let last_dd = match &prepared {
+        Prepared::Dd(dd, _) => Some(&**dd),
+        Prepared::NonsmoothCg(ns) => ns.last_solver(),
+        Prepared::Direct(_) => None,
+    };
+    if let Some(dd) = last_dd {
         if let Some(r) = dd.coarse_residual().filter(|r| !(*r <= COARSE_RESIDUAL_NOTE)) {
             notes.push(format!(
                 "the coarse problem was solved to a backward error of only {r:.1e} (badly conditioned \

@@ -813,9 +813,9 @@ fn scene_results_match_rust_api_bit_for_bit() {
     }
 }
 
-/// The interface CG through the C ABI (method 3) on a linear scene: the same
-/// bits as the Rust API, and a named refusal on a scene with unilateral
-/// cables.
+/// The interface CG through the C ABI (method 3) on a linear scene and on
+/// one with unilateral cables (the nonsmooth CG): the same bits as the Rust
+/// API.
 /// Solves `s` with `o` through the C ABI; returns the result handle (for
 /// the caller to query and destroy) and its displacements.
 unsafe fn solve_displacements(s: *mut NsddScene, o: *mut NsddOptions) -> (*mut NsddResult, Vec<f64>) {
@@ -878,9 +878,22 @@ fn scene_level_cg_matches_rust_api_bit_for_bit() {
         nsdd_scene_destroy(s);
         let grid = cstr(root().join("scenes/grid-8x8.toml").to_str().unwrap());
         ok(nsdd_scene_from_file(grid.as_ptr(), &mut s));
-        let mut r = null_mut();
-        expect_err(nsdd_solve(s, o, &mut r), NsddStatus::MethodNotApplicable, "unilateral");
-        assert!(r.is_null());
+        // Unilateral cables: the nonsmooth CG, bit for bit as in Rust.
+        opts.preconditioner = Preconditioner::Dirichlet;
+        ok(nsdd_options_set_preconditioner(o, 0));
+        let scene8 = Scene::load(&root().join("scenes/grid-8x8.toml")).unwrap();
+        let want = solve(&scene8, &opts).unwrap();
+        assert!(want.converged && want.slack.iter().any(|&b| b));
+        let (r, u) = solve_displacements(s, o);
+        let wu: Vec<f64> = want.displacements.iter().flatten().copied().collect();
+        assert_eq!(bits(&u), bits(&wu));
+        let mut sl = vec![0u8; want.slack.len()];
+        ok(nsdd_result_slack(r, sl.as_mut_ptr(), sl.len()));
+        assert_eq!(sl, want.slack.iter().map(|&b| b as u8).collect::<Vec<_>>());
+        let mut it = 0;
+        ok(nsdd_result_iterations(r, &mut it));
+        assert_eq!(it, want.iterations);
+        nsdd_result_destroy(r);
         nsdd_scene_destroy(s);
         nsdd_options_destroy(o);
     }

