@@ -412,6 +412,7 @@ impl NonsmoothCg {
             if let Some(e) = out.divergence() {
                 return Err(e);
             }
+            let inner_converged = out.converged();
             forces = Some(keyed_forces(dec, &dd.interface_forces()));
             total += out.iterations;
             history.extend(out.history.into_iter().map(|h| HistoryEntry {
@@ -449,7 +450,7 @@ impl NonsmoothCg {
                     "outer {outer}: {} slack, soft {soft}, inner tol {inner_tol:.1e}, {} its (conv {}), setup {setup_s:.3}s, cg {:.3}s, {} flips, violation {violation:.2e}",
                     slack.iter().filter(|&&s| s).count(),
                     out.iterations,
-                    out.converged(),
+                    inner_converged,
                     t_inner.elapsed().as_secs_f64(),
                     next.iter().zip(&slack).filter(|(a, b)| a != b).count()
                 );
@@ -463,7 +464,7 @@ impl NonsmoothCg {
                 h.cable_change = Some(violation);
             }
             if first.is_none() {
-                if inner_tol > tol && out.converged() {
+                if inner_tol > tol && inner_converged {
                     // Settled on a loose solve: confirm at the tolerance.
                     violation = 0.0;
                     continue;
@@ -479,13 +480,13 @@ impl NonsmoothCg {
                         lambda,
                         iterations: total,
                     },
-                    converged: out.converged(),
+                    converged: inner_converged,
                     history,
                     outer_steps: outer,
                     setups,
                 });
             }
-            if !out.converged() && total >= self.opts.max_iterations {
+            if !inner_converged && total >= self.opts.max_iterations {
                 // Budget spent with the set still moving: report the state.
                 let lambda = (0..nc).map(|c| if slack[c] { (-g[c]).max(0.0) } else { 0.0 }).collect();
                 return Ok(NonsmoothOutcome {
