@@ -366,10 +366,10 @@ fn cg_matches_direct_on_random_trusses() {
         t.matched * 2 >= t.cases,
         "fewer than half the cases were checked against direct"
     );
-    // Measured on 300 cases: 3 end unconverged, all on the linear interface
-    // CG's round-off floor (indicator 2-4e-8 for a tolerance of 1e-8, true
-    // error 1-9e-9), one of them a linear truss: the linear CG's stopping
-    // test, not the active set (the stationary method leaves ~2% unconverged
+    // Measured on 300 cases: 2-3 end unconverged, all on the linear
+    // interface CG's round-off floor (indicator 2-4e-8 for a tolerance of
+    // 1e-8, true error 1-9e-9), one of them a linear truss: the linear CG's
+    // stopping test, not the active set (the stationary method leaves ~2% unconverged
     // with errors up to 1e-6).
     assert_eq!(t.diverged, 0, "cg diverged");
     assert!(
