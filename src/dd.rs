@@ -414,15 +414,17 @@ impl DdSolver {
                 .par_iter()
                 .zip(ifaces.par_iter())
                 .map(|(it, st)| {
-                    let dofs = &dec.entry_dof[it.start..it.end];
-                    let (points, comp): (Vec<[f64; 3]>, Vec<usize>) = dofs.iter().map(|&d| dof_points[d]).unzip();
                     let rlo = operators[it.lo].kernel();
                     let rhi = operators[it.hi].kernel();
                     let tlo = Mat::from_fn(it.len(), rlo.ncols(), |j, q| rlo[(st.lo_idx[j] as usize, q)]);
                     let thi = Mat::from_fn(it.len(), rhi.ncols(), |j, q| rhi[(st.hi_idx[j] as usize, q)]);
                     if natural_only {
+                        // No geometric modes: no dof points needed (the
+                        // algebraic level may not have them).
                         MacroBasis::kernel_block(&tlo, &thi)
                     } else {
+                        let dofs = &dec.entry_dof[it.start..it.end];
+                        let (points, comp): (Vec<[f64; 3]>, Vec<usize>) = dofs.iter().map(|&d| dof_points[d]).unzip();
                         MacroBasis::interface_block(&points, &comp, &tlo, &thi)
                     }
                 })
