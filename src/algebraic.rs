@@ -403,10 +403,7 @@ impl AlgebraicProblem {
     pub fn check_complete(&self, coarse: bool) -> Result<()> {
         for (s, sub) in self.subdomains.iter().enumerate() {
             if sub.is_none() {
-                return Err(bad(
-                    format!("subdomain {s}"),
-                    format!("subdomain {s} has not been set"),
-                ));
+                return Err(bad(format!("subdomain {s}"), format!("subdomain {s} has not been set")));
             }
         }
         let mut covered = vec![false; self.n_global];
@@ -416,7 +413,10 @@ impl AlgebraicProblem {
             }
         }
         if let Some(g) = covered.iter().position(|c| !c) {
-            return Err(bad("local_to_global", format!("global dof {g} belongs to no subdomain")));
+            return Err(bad(
+                "local_to_global",
+                format!("global dof {g} belongs to no subdomain"),
+            ));
         }
         if coarse && self.dof_points.is_none() {
             return Err(bad(
@@ -507,6 +507,10 @@ impl AlgebraicProblem {
             .enumerate()
             .map(|(s, sub)| {
                 let inv = &inverse[s];
+                // Every diagonal entry is stored (an explicit zero when the
+                // caller left it out, duplicates being summed): a dof with
+                // no stiffness then shows as a zero pivot (a kernel mode or
+                // a clear error) instead of a hole in the pattern.
                 let trip: Vec<(usize, usize, f64)> = sub
                     .lower
                     .iter()
@@ -514,6 +518,7 @@ impl AlgebraicProblem {
                         let (a, b) = (inv[i], inv[j]);
                         (a.max(b), a.min(b), v)
                     })
+                    .chain((0..sub.n_local).map(|p| (p, p, 0.0)))
                     .collect();
                 let stiffness = lower_csc(sub.n_local, &trip)
                     .map_err(|e| Error::Numerical(format!("subdomain {s}: cannot build the matrix: {e:?}")))?;
@@ -669,7 +674,11 @@ impl AlgebraicSolver {
             if r.len() != order.len() {
                 return Err(bad(
                     name,
-                    format!("rhs[{s}] has {} entries, subdomain {s} has {} dofs", r.len(), order.len()),
+                    format!(
+                        "rhs[{s}] has {} entries, subdomain {s} has {} dofs",
+                        r.len(),
+                        order.len()
+                    ),
                 ));
             }
             check_finite(&name, r)?;

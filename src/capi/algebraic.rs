@@ -98,9 +98,7 @@ pub unsafe extern "C" fn nsdd_alg_set_subdomain(
         let col_idx = unsafe { slice(col_idx, nnz, "col_idx")? };
         let values = unsafe { slice(values, nnz, "values")? };
         let l2g = unsafe { slice(local_to_global, n_local, "local_to_global")? };
-        h.problem
-            .subdomain(s, row_ptr, col_idx, values, l2g)
-            .map_err(arg)?;
+        h.problem.subdomain(s, row_ptr, col_idx, values, l2g).map_err(arg)?;
         h.setup = None;
         Ok(())
     })
