@@ -3,6 +3,9 @@
 //! with unilateral prestressed cables against the direct solver, and the
 //! errors of bad input naming the subdomain and field.
 
+// Dense elimination and element loops index like their formulas.
+#![allow(clippy::needless_range_loop)]
+
 use nsdd::algebraic::AlgebraicProblem;
 use nsdd::dd::{DdProblem, NO_DOF};
 use nsdd::direct::DirectSolver;
