@@ -672,9 +672,10 @@ void nsdd_alg_destroy(struct NsddAlgebraic *alg);
  * symmetric positive semi-definite) in 0-based CSR — `row_ptr` has
  * `n_local + 1` entries, `col_idx` and `values` have `row_ptr[n_local]` —
  * and `local_to_global` (`n_local` distinct global dof ids, any order). Give
- * either the full symmetric matrix or its lower triangle: entries above the
- * diagonal (column > row) are ignored, and duplicates are summed. A matrix
- * given as its upper triangle only is INVALID_ARGUMENT. Global dofs with
+ * either the full symmetric matrix or its lower triangle: duplicates are
+ * summed, and only the lower triangle is kept. A full matrix that is not
+ * symmetric (up to round-off), or one given as its upper triangle only, is
+ * INVALID_ARGUMENT. Global dofs with
  * equal ids in several subdomains are glued (interface dofs). The local
  * numbering given here is the one of `nsdd_alg_set_kernel`,
  * `nsdd_alg_add_cable` and the right-hand sides of `nsdd_alg_solve`. The

@@ -1,8 +1,24 @@
 //! The algebraic level of the C ABI: subdomain matrices, local-to-global
 //! maps, dof points, kernels and cables, set up once and solved for any
-//! number of right-hand sides.
+//! number of right-hand sides: a thin mirror of
+//! [`crate::algebraic`] (the checks and the set-up live there; here are the
+//! handles, the pointer checks and the status codes).
 
 use super::*;
+
+/// A bad argument found by the library's checks is INVALID_ARGUMENT here
+/// (its message without the "invalid input" prefix); other errors keep
+/// their status.
+fn arg(e: Error) -> Fail {
+    match e {
+        Error::InvalidInput { field, index, message } => invalid(match index {
+            Some(i) => format!("{field}[{i}]: {message}"),
+            None if message.contains(&field) => message,
+            None => format!("{field}: {message}"),
+        }),
+        other => other.into(),
+    }
+}
 
 // ---------------------------------------------------------------------------
 // Algebraic level.
@@ -25,22 +41,8 @@ pub unsafe extern "C" fn nsdd_alg_new(
 ) -> NsddStatus {
     ffi_guard(|| {
         unsafe { clear_out(out, "out")? };
-        if n_subdomains == 0 {
-            return Err(invalid("n_subdomains must be at least 1"));
-        }
-        if n_global_dofs == 0 {
-            return Err(invalid("n_global_dofs must be at least 1"));
-        }
-        if n_subdomains > n_global_dofs {
-            return Err(invalid(format!(
-                "n_subdomains = {n_subdomains} exceeds n_global_dofs = {n_global_dofs}"
-            )));
-        }
         let h = NsddAlgebraic {
-            n_global: n_global_dofs,
-            subdomains: (0..n_subdomains).map(|_| None).collect(),
-            dof_points: None,
-            cables: Vec::new(),
+            problem: AlgebraicProblem::new(n_subdomains, n_global_dofs).map_err(arg)?,
             setup: None,
         };
         unsafe { out.write(boxed(h)) };
@@ -57,23 +59,14 @@ pub unsafe extern "C" fn nsdd_alg_destroy(alg: *mut NsddAlgebraic) {
     let _ = catch_unwind(AssertUnwindSafe(|| unsafe { destroy(alg) }));
 }
 
-pub(super) fn check_subdomain(h: &NsddAlgebraic, s: usize) -> FfiResult {
-    if s >= h.subdomains.len() {
-        return Err(invalid(format!(
-            "subdomain {s} out of range (the problem has {} subdomains)",
-            h.subdomains.len()
-        )));
-    }
-    Ok(())
-}
-
 /// Sets subdomain `s` (0-based): its stiffness `K_E` (`n_local × n_local`,
 /// symmetric positive semi-definite) in 0-based CSR — `row_ptr` has
 /// `n_local + 1` entries, `col_idx` and `values` have `row_ptr[n_local]` —
 /// and `local_to_global` (`n_local` distinct global dof ids, any order). Give
-/// either the full symmetric matrix or its lower triangle: entries above the
-/// diagonal (column > row) are ignored, and duplicates are summed. A matrix
-/// given as its upper triangle only is INVALID_ARGUMENT. Global dofs with
+/// either the full symmetric matrix or its lower triangle: duplicates are
+/// summed, and only the lower triangle is kept. A full matrix that is not
+/// symmetric (up to round-off), or one given as its upper triangle only, is
+/// INVALID_ARGUMENT. Global dofs with
 /// equal ids in several subdomains are glued (interface dofs). The local
 /// numbering given here is the one of `nsdd_alg_set_kernel`,
 /// `nsdd_alg_add_cable` and the right-hand sides of `nsdd_alg_solve`. The
@@ -94,10 +87,6 @@ pub unsafe extern "C" fn nsdd_alg_set_subdomain(
 ) -> NsddStatus {
     ffi_guard(|| {
         let h = unsafe { handle_mut(alg, "alg")? };
-        check_subdomain(h, s)?;
-        if n_local == 0 {
-            return Err(invalid(format!("subdomain {s}: n_local must be at least 1")));
-        }
         let row_ptr = unsafe {
             slice(
                 row_ptr,
@@ -105,71 +94,12 @@ pub unsafe extern "C" fn nsdd_alg_set_subdomain(
                 "row_ptr",
             )?
         };
-        if row_ptr[0] != 0 {
-            return Err(invalid(format!(
-                "subdomain {s}: row_ptr[0] = {}, expected 0 (0-based CSR)",
-                row_ptr[0]
-            )));
-        }
-        if let Some(i) = row_ptr.windows(2).position(|w| w[1] < w[0]) {
-            return Err(invalid(format!(
-                "subdomain {s}: row_ptr[{}] < row_ptr[{i}] (must not decrease)",
-                i + 1
-            )));
-        }
-        let nnz = row_ptr[n_local];
+        let nnz = row_ptr.last().copied().unwrap_or(0);
         let col_idx = unsafe { slice(col_idx, nnz, "col_idx")? };
         let values = unsafe { slice(values, nnz, "values")? };
         let l2g = unsafe { slice(local_to_global, n_local, "local_to_global")? };
-        check_finite("values", values)?;
-        if let Some(p) = col_idx.iter().position(|&c| c >= n_local) {
-            return Err(invalid(format!(
-                "subdomain {s}: col_idx[{p}] = {} out of range (n_local = {n_local})",
-                col_idx[p]
-            )));
-        }
-        if let Some(i) = l2g.iter().position(|&g| g >= h.n_global) {
-            return Err(invalid(format!(
-                "subdomain {s}: local_to_global[{i}] = {} out of range (n_global_dofs = {})",
-                l2g[i], h.n_global
-            )));
-        }
-        let mut sorted: Vec<(usize, usize)> = l2g.iter().enumerate().map(|(i, &g)| (g, i)).collect();
-        sorted.sort_unstable();
-        if let Some(w) = sorted.windows(2).find(|w| w[0].0 == w[1].0) {
-            return Err(invalid(format!(
-                "subdomain {s}: local_to_global[{}] and local_to_global[{}] are both global dof {}",
-                w[0].1.min(w[1].1),
-                w[0].1.max(w[1].1),
-                w[0].0
-            )));
-        }
-        let mut lower = Vec::with_capacity(nnz);
-        let mut n_upper = 0usize;
-        let mut n_strict_lower = 0usize;
-        for i in 0..n_local {
-            for p in row_ptr[i]..row_ptr[i + 1] {
-                let j = col_idx[p];
-                if j > i {
-                    n_upper += 1;
-                } else {
-                    n_strict_lower += (j < i) as usize;
-                    lower.push((i, j, values[p]));
-                }
-            }
-        }
-        if n_strict_lower == 0 && n_upper > 0 {
-            return Err(invalid(format!(
-                "subdomain {s}: only the upper triangle was given (no entry below the diagonal); pass the full symmetric matrix or its lower triangle"
-            )));
-        }
+        h.problem.subdomain(s, row_ptr, col_idx, values, l2g).map_err(arg)?;
         h.setup = None;
-        h.subdomains[s] = Some(AlgSubdomain {
-            n_local,
-            lower,
-            local_to_global: l2g.to_vec(),
-            kernel: None,
-        });
         Ok(())
     })
 }
@@ -191,28 +121,18 @@ pub unsafe extern "C" fn nsdd_alg_set_dof_points(
 ) -> NsddStatus {
     ffi_guard(|| {
         let h = unsafe { handle_mut(alg, "alg")? };
-        if n_global != h.n_global {
+        if n_global != h.problem.n_global_dofs() {
             return Err(invalid(format!(
                 "n_global = {n_global}, expected n_global_dofs = {}",
-                h.n_global
+                h.problem.n_global_dofs()
             )));
         }
         let xyz = unsafe { slice(xyz, 3 * n_global, "xyz")? };
         let comp = unsafe { slice(component, n_global, "component")? };
-        check_finite("xyz", xyz)?;
-        if let Some(i) = comp.iter().position(|&c| c > 2) {
-            return Err(invalid(format!(
-                "component[{i}] = {}: expected 0 (x), 1 (y) or 2 (z)",
-                comp[i]
-            )));
-        }
+        let points: Vec<[f64; 3]> = xyz.chunks_exact(3).map(|p| [p[0], p[1], p[2]]).collect();
+        let comp: Vec<usize> = comp.iter().map(|&c| c as usize).collect();
+        h.problem.dof_points(&points, &comp).map_err(arg)?;
         h.setup = None;
-        h.dof_points = Some(
-            xyz.chunks_exact(3)
-                .zip(comp)
-                .map(|(p, &c)| ([p[0], p[1], p[2]], c as usize))
-                .collect(),
-        );
         Ok(())
     })
 }
@@ -237,23 +157,23 @@ pub unsafe extern "C" fn nsdd_alg_set_kernel(
 ) -> NsddStatus {
     ffi_guard(|| {
         let h = unsafe { handle_mut(alg, "alg")? };
-        check_subdomain(h, s)?;
-        let sub = h.subdomains[s].as_mut().ok_or_else(|| {
-            invalid(format!(
-                "subdomain {s} has not been set (call nsdd_alg_set_subdomain first)"
-            ))
-        })?;
-        if n_local != sub.n_local {
+        // The C call names n_local: check it against the subdomain before
+        // reading the basis.
+        let have = h.problem.n_local(s);
+        if have.is_none() {
+            // Out of range or not set: the library's message says which.
+            h.problem.kernel(s, &[]).map_err(arg)?;
+        }
+        let have = have.unwrap_or(0);
+        if n_local != have {
             return Err(invalid(format!(
-                "subdomain {s}: n_local = {n_local}, the subdomain has {}",
-                sub.n_local
+                "subdomain {s}: n_local = {n_local}, the subdomain has {have}"
             )));
         }
         let len = n_local.checked_mul(r).ok_or_else(|| invalid("n_local * r overflows"))?;
         let basis = unsafe { slice(basis, len, "basis")? };
-        check_finite("basis", basis)?;
+        h.problem.kernel(s, basis).map_err(arg)?;
         h.setup = None;
-        sub.kernel = if r == 0 { None } else { Some((r, basis.to_vec())) };
         Ok(())
     })
 }
@@ -286,45 +206,15 @@ pub unsafe extern "C" fn nsdd_alg_add_cable(
 ) -> NsddStatus {
     ffi_guard(|| {
         let h = unsafe { handle_mut(alg, "alg")? };
-        check_subdomain(h, s)?;
-        let n_local = h.subdomains[s]
-            .as_ref()
-            .ok_or_else(|| {
-                invalid(format!(
-                    "subdomain {s} has not been set (call nsdd_alg_set_subdomain first)"
-                ))
-            })?
-            .n_local;
-        if n_entries > NSDD_MAX_CABLE_ENTRIES {
-            return Err(invalid(format!(
-                "n_entries = {n_entries}: expected at most {NSDD_MAX_CABLE_ENTRIES}"
-            )));
-        }
         let dofs = unsafe { slice(local_dofs, n_entries, "local_dofs")? };
         let coefs = unsafe { slice(coefs, n_entries, "coefs")? };
-        if let Some(i) = dofs.iter().position(|&d| d >= n_local) {
-            return Err(invalid(format!(
-                "local_dofs[{i}] = {} out of range (subdomain {s} has {n_local} dofs)",
-                dofs[i]
-            )));
+        if !out_index.is_null() {
+            // Checked first: a failed call adds no cable.
+            check_ptr(out_index, "out_index")?;
         }
-        check_finite("coefs", coefs)?;
-        if !(k > 0.0 && k.is_finite()) {
-            return Err(invalid(format!("k must be positive and finite, got {k}")));
-        }
-        if !e0.is_finite() {
-            return Err(invalid(format!("e0 must be finite, got {e0}")));
-        }
-        let index = h.cables.len();
-        unsafe { write_opt(out_index, "out_index", index)? };
+        let index = h.problem.cable(s, dofs, coefs, k, e0).map_err(arg)?;
         h.setup = None;
-        h.cables.push(AlgCable {
-            subdomain: s,
-            dofs: dofs.to_vec(),
-            coefs: coefs.to_vec(),
-            k,
-            e0,
-        });
+        unsafe { write_opt(out_index, "out_index", index)? };
         Ok(())
     })
 }
@@ -337,162 +227,18 @@ pub unsafe extern "C" fn nsdd_alg_add_cable(
 pub unsafe extern "C" fn nsdd_alg_num_cables(alg: *const NsddAlgebraic, out: *mut usize) -> NsddStatus {
     ffi_guard(|| {
         let h = unsafe { handle(alg, "alg")? };
-        unsafe { write_out(out, "out", h.cables.len()) }
+        unsafe { write_out(out, "out", h.problem.n_cables()) }
     })
 }
 
 pub(super) fn alg_setup(h: &mut NsddAlgebraic, opts: &SolveOptions) -> FfiResult {
     h.setup = None;
-    // The one mapping of a method to its configuration (and the one
-    // validation of the settings); `direct` is refused here.
-    let dd_options = DdOptions::from_settings(opts)?;
-    let coarse = dd_options.coarse;
-    let ns = h.subdomains.len();
-    let mut subs = Vec::with_capacity(ns);
-    for (s, sub) in h.subdomains.iter().enumerate() {
-        subs.push(
-            sub.as_ref()
-                .ok_or_else(|| invalid(format!("subdomain {s} has not been set (nsdd_alg_set_subdomain)")))?,
-        );
-    }
-    let mut covered = vec![false; h.n_global];
-    for sub in &subs {
-        for &g in &sub.local_to_global {
-            covered[g] = true;
-        }
-    }
-    if let Some(g) = covered.iter().position(|c| !c) {
-        return Err(invalid(format!("global dof {g} belongs to no subdomain")));
-    }
-    let dof_points = match (&h.dof_points, coarse) {
-        (Some(p), _) => p.clone(),
-        (None, false) => vec![([0.0; 3], 0); h.n_global],
-        (None, true) => {
-            return Err(invalid(
-                "the multilevel method needs the dof points (call nsdd_alg_set_dof_points)",
-            ))
-        }
-    };
-    for (c, cable) in h.cables.iter().enumerate() {
-        let n = subs[cable.subdomain].n_local;
-        if let Some(&d) = cable.dofs.iter().find(|&&d| d >= n) {
-            return Err(invalid(format!(
-                "cable {c}: local dof {d} out of range (subdomain {} now has {n} dofs)",
-                cable.subdomain
-            )));
-        }
-    }
-    // The decomposition takes each subdomain's dofs in increasing global
-    // order and lays them out its own way (interior first, then interface
-    // by interface): its local dof p is the caller's local dof order[p];
-    // inverse[caller] = p.
-    let sorted: Vec<Vec<usize>> = subs
-        .iter()
-        .map(|sub| {
-            let mut o: Vec<usize> = (0..sub.n_local).collect();
-            o.sort_unstable_by_key(|&i| sub.local_to_global[i]);
-            o
-        })
-        .collect();
-    let dof_sets: Vec<Vec<usize>> = subs
-        .iter()
-        .zip(&sorted)
-        .map(|(sub, o)| o.iter().map(|&i| sub.local_to_global[i]).collect())
-        .collect();
-    let partition = Partition {
-        part_of: vec![],
-        elements_of: vec![vec![]; ns],
-    };
-    let dec = Box::new(Decomposition::from_dof_sets(partition, dof_sets, h.n_global));
-    let order: Vec<Vec<usize>> = dec
-        .subdomains
-        .iter()
-        .zip(&sorted)
-        .map(|(sd, o)| {
-            let mut ord = vec![0; o.len()];
-            for (k, &l) in sd.by_global.iter().enumerate() {
-                ord[l as usize] = o[k];
-            }
-            ord
-        })
-        .collect();
-    let inverse: Vec<Vec<usize>> = order
-        .iter()
-        .map(|o| {
-            let mut inv = vec![0; o.len()];
-            for (p, &i) in o.iter().enumerate() {
-                inv[i] = p;
-            }
-            inv
-        })
-        .collect();
-
-    let ops: Vec<crate::Result<SubdomainOperator>> = subs
-        .par_iter()
-        .enumerate()
-        .map(|(s, sub)| {
-            let inv = &inverse[s];
-            let trip: Vec<(usize, usize, f64)> = sub
-                .lower
-                .iter()
-                .map(|&(i, j, v)| {
-                    let (a, b) = (inv[i], inv[j]);
-                    (a.max(b), a.min(b), v)
-                })
-                .collect();
-            let stiffness = lower_csc(sub.n_local, &trip)
-                .map_err(|e| Error::Numerical(format!("subdomain {s}: cannot build the matrix: {e:?}")))?;
-            let kernel = sub.kernel.as_ref().map(|(r, b)| {
-                let n = sub.n_local;
-                Mat::from_fn(n, *r, |p, q| b[q * n + order[s][p]])
-            });
-            let name = |p: usize| {
-                let i = order[s][p];
-                format!("local dof {i} (global dof {})", sub.local_to_global[i])
-            };
-            let rank = dec.subdomains[s].reference_rank();
-            SubdomainOperator::from_matrix(s, stiffness, 64, kernel.as_ref(), Some(&rank), &name)
-        })
-        .collect();
-    let mut operators = Vec::with_capacity(ns);
-    for op in ops {
-        operators.push(op?);
-    }
-    let mut loads: Vec<SubdomainLoad> = subs
-        .iter()
-        .map(|sub| SubdomainLoad {
-            constant: vec![0.0; sub.n_local],
-            cables: Vec::new(),
-        })
-        .collect();
-    for (c, cable) in h.cables.iter().enumerate() {
-        let mut dofs = [NO_DOF; 6];
-        let mut coef = [0.0; 6];
-        for (k, (&d, &v)) in cable.dofs.iter().zip(&cable.coefs).enumerate() {
-            dofs[k] = inverse[cable.subdomain][d] as u32;
-            coef[k] = v;
-        }
-        loads[cable.subdomain].cables.push(CableColumn {
-            cable: c,
-            dofs,
-            coef,
-            k: cable.k,
-            e0: cable.e0,
-        });
-    }
-    let problem = DdProblem {
-        decomposition: &dec,
-        operators,
-        loads,
-        dof_points,
-        n_cables: h.cables.len(),
-    };
-    let solver = DdSolver::from_problem(problem, dd_options)?;
-    h.setup = Some(AlgSetup {
-        decomposition: dec,
-        solver: Box::new(solver),
-        order,
-    });
+    // Settings errors keep their status; the completeness checks are bad
+    // arguments; the set-up's own errors (bad kernel, mechanism, ...) keep
+    // theirs.
+    let coarse = DdOptions::from_settings(opts)?.coarse;
+    h.problem.check_complete(coarse).map_err(arg)?;
+    h.setup = Some(h.problem.build(opts)?);
     Ok(())
 }
 
@@ -533,7 +279,7 @@ pub unsafe extern "C" fn nsdd_alg_search_direction(alg: *const NsddAlgebraic, ou
     ffi_guard(|| {
         let h = unsafe { handle(alg, "alg")? };
         let st = h.setup.as_ref().ok_or_else(not_set_up)?;
-        unsafe { write_out(out, "out", st.solver.search_direction()) }
+        unsafe { write_out(out, "out", st.search_direction()) }
     })
 }
 
@@ -547,7 +293,7 @@ pub(super) fn not_set_up() -> Fail {
 #[allow(clippy::too_many_arguments)]
 pub(super) unsafe fn alg_write_outcome(
     h: &NsddAlgebraic,
-    out: crate::dd::DdOutcome,
+    out: crate::outcome::Outcome,
     out_u: *mut f64,
     out_lambda: *mut f64,
     out_iterations: *mut usize,
@@ -558,9 +304,9 @@ pub(super) unsafe fn alg_write_outcome(
     if let Some(e) = out.divergence() {
         return Err(e.into());
     }
-    unsafe { slice_mut(out_u, h.n_global, "out_u")? }.copy_from_slice(&out.u);
+    unsafe { slice_mut(out_u, h.problem.n_global_dofs(), "out_u")? }.copy_from_slice(&out.u);
     if !out_lambda.is_null() {
-        unsafe { slice_mut(out_lambda, h.cables.len(), "out_lambda")? }.copy_from_slice(&out.lambda);
+        unsafe { slice_mut(out_lambda, h.problem.n_cables(), "out_lambda")? }.copy_from_slice(&out.lambda);
     }
     unsafe {
         write_opt(out_iterations, "out_iterations", out.iterations)?;
@@ -606,18 +352,16 @@ pub unsafe extern "C" fn nsdd_alg_solve(
         if h.setup.is_none() {
             return Err(not_set_up());
         }
-        check_out_ptrs(out_u, out_lambda, h.cables.len())?;
-        let ns = h.subdomains.len();
+        check_out_ptrs(out_u, out_lambda, h.problem.n_cables())?;
+        let ns = h.problem.n_subdomains();
         let ptrs = unsafe { slice(rhs, ns, "rhs")? };
         let st = h.setup.as_mut().ok_or_else(not_set_up)?;
-        let mut local: Vec<Vec<f64>> = Vec::with_capacity(ns);
-        for (s, (&p, order)) in ptrs.iter().zip(&st.order).enumerate() {
-            let r = unsafe { slice(p, order.len(), &format!("rhs[{s}]"))? };
-            check_finite(&format!("rhs[{s}]"), r)?;
-            local.push(order.iter().map(|&i| r[i]).collect());
+        let mut local: Vec<&[f64]> = Vec::with_capacity(ns);
+        for (s, &p) in ptrs.iter().enumerate() {
+            let n = h.problem.n_local(s).unwrap_or(0);
+            local.push(unsafe { slice(p, n, &format!("rhs[{s}]"))? });
         }
-        let views: Vec<&[f64]> = local.iter().map(|v| v.as_slice()).collect();
-        let out = st.solver.solve_local(&views, false, None)?;
+        let out = st.solve_local(&local).map_err(arg)?;
         unsafe { alg_write_outcome(h, out, out_u, out_lambda, out_iterations, out_converged) }
     })
 }
@@ -643,11 +387,10 @@ pub unsafe extern "C" fn nsdd_alg_solve_global(
         if h.setup.is_none() {
             return Err(not_set_up());
         }
-        check_out_ptrs(out_u, out_lambda, h.cables.len())?;
-        let f = unsafe { slice(f, h.n_global, "f")? };
-        check_finite("f", f)?;
+        check_out_ptrs(out_u, out_lambda, h.problem.n_cables())?;
+        let f = unsafe { slice(f, h.problem.n_global_dofs(), "f")? };
         let st = h.setup.as_mut().ok_or_else(not_set_up)?;
-        let out = st.solver.solve(f, false, None)?;
+        let out = st.solve(f).map_err(arg)?;
         unsafe { alg_write_outcome(h, out, out_u, out_lambda, out_iterations, out_converged) }
     })
 }

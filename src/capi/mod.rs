@@ -19,18 +19,13 @@
 //!   part of each function's documentation; outputs are written only on
 //!   success (except `*out` handles, which are set to NULL first).
 
-use crate::dd::{CableColumn, DdOptions, DdProblem, DdSolver, SubdomainLoad, NO_DOF};
-use crate::decomposition::Decomposition;
+use crate::algebraic::{AlgebraicProblem, AlgebraicSolver};
+use crate::dd::DdOptions;
 use crate::error::Error;
-use crate::factor::lower_csc;
 use crate::outcome::Status;
-use crate::partition::Partition;
 use crate::result::SolveResult;
 use crate::scene::{ElementKind, Method, Nodes, Preconditioner, Scene, SearchDirection, SolverSettings};
 use crate::solve::{solve, SolveOptions};
-use crate::subdomain::SubdomainOperator;
-use faer::Mat;
-use rayon::prelude::*;
 use std::cell::RefCell;
 use std::ffi::{c_char, CStr, CString};
 use std::panic::{catch_unwind, AssertUnwindSafe};
@@ -162,44 +157,13 @@ pub struct NsddResult {
     result: SolveResult,
 }
 
-/// One subdomain of an algebraic problem, in the caller's local numbering.
-struct AlgSubdomain {
-    n_local: usize,
-    /// Lower triangle `(row, col, value)`, `row >= col`, caller numbering.
-    lower: Vec<(usize, usize, f64)>,
-    local_to_global: Vec<usize>,
-    /// Caller's kernel basis `(r, n_local × r column-major)`.
-    kernel: Option<(usize, Vec<f64>)>,
-}
-
-struct AlgCable {
-    subdomain: usize,
-    dofs: Vec<usize>,
-    coefs: Vec<f64>,
-    k: f64,
-    e0: f64,
-}
-
-/// The set-up solver of an algebraic problem.
-struct AlgSetup {
-    /// Kept alongside the solver it was built from (the solver itself does
-    /// not borrow it after construction).
-    #[allow(dead_code)]
-    decomposition: Box<Decomposition>,
-    solver: Box<DdSolver>,
-    /// Per subdomain: caller local index of each decomposition local dof.
-    order: Vec<Vec<usize>>,
-}
-
 /// An algebraic domain-decomposition problem assembled by the caller
 /// (subdomain matrices in CSR, local-to-global maps, cables), set up once
 /// and solved for any number of right-hand sides.
 pub struct NsddAlgebraic {
-    n_global: usize,
-    subdomains: Vec<Option<AlgSubdomain>>,
-    dof_points: Option<Vec<([f64; 3], usize)>>,
-    cables: Vec<AlgCable>,
-    setup: Option<AlgSetup>,
+    problem: AlgebraicProblem,
+    /// Discarded by any change to the problem.
+    setup: Option<AlgebraicSolver>,
 }
 
 // In this order: it is the order of the header (cbindgen follows the
