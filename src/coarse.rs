@@ -117,7 +117,11 @@ impl MacroBasis {
         if a + b == 0 {
             return Mat::zeros(n, 0);
         }
-        let all = Mat::from_fn(n, a + b, |i, j| if j < a { trace_lo[(i, j)] } else { trace_hi[(i, j - a)] });
+        let all = Mat::from_fn(
+            n,
+            a + b,
+            |i, j| if j < a { trace_lo[(i, j)] } else { trace_hi[(i, j - a)] },
+        );
         orthonormal_columns(&all, 1e-10)
     }
 

@@ -394,7 +394,11 @@ fn unsupported_structure_fails_naming_the_cause() {
     assert_eq!(out.status.code(), Some(0), "stderr: {}", text(&out.stderr));
     let r = read_json(&res);
     assert_eq!(r["converged"], Value::Bool(true));
-    assert!(r["stages"].as_array().unwrap().iter().any(|s| s == "kernel"), "{}", r["stages"]);
+    assert!(
+        r["stages"].as_array().unwrap().iter().any(|s| s == "kernel"),
+        "{}",
+        r["stages"]
+    );
 }
 
 #[test]

@@ -135,7 +135,10 @@ fn monolevel_solves_singular_subdomains_with_the_natural_coarse_space() {
         .unwrap()
     };
     let (mono, multi) = (setup(false), setup(true));
-    assert!(mono.stats().kernel_dims.iter().any(|&k| k > 0), "no floating part to test");
+    assert!(
+        mono.stats().kernel_dims.iter().any(|&k| k > 0),
+        "no floating part to test"
+    );
     assert!(mono.has_coarse());
     assert_eq!(mono.stats().kernel_unknowns, multi.stats().kernel_unknowns);
     assert!(
