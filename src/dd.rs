@@ -15,12 +15,14 @@
 //! number of threads. Scratch is allocated at set-up: the iteration loop
 //! does not allocate.
 
+use crate::cg_stopping::{self, CgStopping};
 use crate::coarse::{CoarseContribution, CoarseProblem, MacroBasis};
 use crate::decomposition::Decomposition;
 use crate::error::{Error, Result};
 use crate::kernels::{self, Run, Side};
 use crate::model::{Model, FIXED};
 use crate::result::HistoryEntry;
+use crate::scaling::{self, EntryWeights, InterfaceScaling};
 use crate::scene::{Preconditioner, SearchDirection};
 use crate::subdomain::{InteriorProblem, SubdomainOperator};
 use faer::Mat;
@@ -268,6 +270,9 @@ struct SubState {
     cg_v: Vec<f64>,
     /// Factored interior problem for the Dirichlet preconditioner of CG.
     interior: Option<InteriorProblem>,
+    /// Interface CG: this subdomain's parts of the stopping energies
+    /// (`cg_energies`).
+    cg_energy: (f64, f64),
 }
 
 struct IfaceState {
@@ -294,6 +299,9 @@ struct IfaceState {
     cg_r: Vec<f64>,
     cg_z: Vec<f64>,
     cg_p: Vec<f64>,
+    /// Interface CG: weights of the scaled jump operator `B_D` of the
+    /// preconditioner ([`crate::scaling`]; empty unless the solver uses CG).
+    w: EntryWeights,
 }
 
 /// Result of one DD solve.
@@ -420,6 +428,7 @@ impl DdSolver {
                 cg_r: Vec::new(),
                 cg_z: Vec::new(),
                 cg_p: Vec::new(),
+                w: EntryWeights::default(),
             })
             .collect();
         if use_coarse {
@@ -487,6 +496,7 @@ impl DdSolver {
                 dforce2: 0.0,
                 cg_v: Vec::new(),
                 interior: None,
+                cg_energy: (0.0, 0.0),
                 op,
             });
             alpha_off += r;
@@ -604,6 +614,7 @@ impl DdSolver {
             stats,
         };
         if solver.opts.krylov {
+            solver.set_interface_scaling(InterfaceScaling::default());
             for it in solver.ifaces.iter_mut() {
                 let n = it.force.len();
                 (it.cg_r, it.cg_z, it.cg_p) = (vec![0.0; n], vec![0.0; n], vec![0.0; n]);
@@ -647,6 +658,35 @@ impl DdSolver {
             });
         }
         t.elapsed().as_secs_f64() / reps as f64
+    }
+
+    /// Weights of the CG preconditioner's scaled jump operator `B_D`
+    /// ([`crate::scaling`]; default [`InterfaceScaling::Stiffness`]). For
+    /// comparisons; later solves use them. Set-up cost only (allocates).
+    pub fn set_interface_scaling(&mut self, kind: InterfaceScaling) {
+        let entries: Vec<scaling::InterfaceEntries<'_>> = self
+            .ifaces
+            .iter()
+            .map(|it| scaling::InterfaceEntries {
+                lo: it.lo,
+                hi: it.hi,
+                lo_idx: &it.lo_idx,
+                hi_idx: &it.hi_idx,
+            })
+            .collect();
+        let mult: Vec<Vec<u32>> = self
+            .subs
+            .iter()
+            .map(|s| s.inv_mult.iter().map(|&w| (1.0 / w).round() as u32).collect())
+            .collect();
+        let diag: Vec<Vec<f64>> = match kind {
+            InterfaceScaling::Stiffness => self.subs.iter().map(|s| s.op.diagonal()).collect(),
+            _ => Vec::new(),
+        };
+        let weights = scaling::interface_weights(&entries, &self.dof_maps, &mult, &diag, kind);
+        for (it, w) in self.ifaces.iter_mut().zip(weights) {
+            it.w = w;
+        }
     }
 
     /// Changes the stopping rule for later solves (the set-up is unchanged).
@@ -1104,6 +1144,7 @@ impl DdSolver {
         }
         let mut iterations = 0;
         let (mut best, mut restarts, mut restart_at) = (f64::INFINITY, 0, 0);
+        let mut energy_terms = CgStopping::default();
         while !converged && iterations < self.opts.max_iterations {
             iterations += 1;
             // q = A p = −J V_hom(p): the homogeneous global step with F = p.
@@ -1142,6 +1183,7 @@ impl DdSolver {
                 break;
             }
             let a = rz / pq;
+            energy_terms.push(a * rz);
             // F += a p, r −= a q (q = −jump), V += a V_hom.
             self.ifaces.par_iter_mut().for_each(|it| {
                 for ((f, r), (&p, &j)) in it
@@ -1176,14 +1218,21 @@ impl DdSolver {
                     message: "the iterate is no longer finite (NaN or Inf)".into(),
                 });
             }
-            // Below the tolerance, stop once the contraction-aware test
-            // passes, or once restarts show the residual has reached the
-            // floor that round-off allows (it cannot fall further).
-            converged = indicator <= self.opts.tolerance
-                && (restarts >= 2 || {
-                    let recent = &history[history.len() - (iterations - restart_at)..];
-                    indicator * stopping_factor(recent) <= self.opts.tolerance || stalled(recent)
-                });
+            // Stop when the energy error estimate from the CG coefficients
+            // is certified (crate::cg_stopping, computed only once the
+            // indicator is close); or, with the indicator itself below the
+            // tolerance, once restarts or a stall show the residual is on
+            // the floor that round-off allows (it cannot fall further).
+            let tol = self.opts.tolerance;
+            converged = cg_stopping::indicator_allows(indicator, tol) && {
+                let (jump_energy, load_energy) = self.cg_energies();
+                energy_terms.tail().is_some_and(|tail| {
+                    cg_stopping::certified(cg_stopping::relative_energy_error(jump_energy, tail, load_energy), tol)
+                })
+            };
+            converged = converged
+                || (indicator <= tol
+                    && (restarts >= 2 || stalled(&history[history.len() - (iterations - restart_at)..])));
             if converged {
                 break;
             }
@@ -1197,6 +1246,7 @@ impl DdSolver {
                 // the forces and restart from the steepest direction.
                 restarts += 1;
                 restart_at = iterations;
+                energy_terms.reset();
                 rz = self.cg_start();
                 best = f64::INFINITY;
                 continue;
@@ -1289,6 +1339,40 @@ impl DdSolver {
         }
     }
 
+    /// The energies of the CG stopping test ([`crate::cg_stopping`]) for
+    /// the iterate `cg_v`, with `jump` = `J cg_v` (as [`Self::cg_indicator`]
+    /// leaves it): `J = Σ_E (ū_E − v_E)ᵀ K_E (ū_E − v_E)`, the strain energy
+    /// that averaging the copies adds (`ū − v_E` at a dof of multiplicity
+    /// `m` is `1/m` of the signed sum of its pair jumps), and `E = Σ_E b_Eᵀ
+    /// v_E`, the work of the loads (`‖u*‖_K²` at convergence). One product
+    /// with `K_E` per subdomain; no allocation.
+    fn cg_energies(&mut self) -> (f64, f64) {
+        let ifaces = &self.ifaces;
+        self.subs.par_iter_mut().for_each(|s| {
+            for &(i, is_lo) in &s.ifaces {
+                let it = &ifaces[i];
+                let (side, coef) = if is_lo { (Side::Lo, -1.0) } else { (Side::Hi, 1.0) };
+                kernels::scatter_add_runs(&mut s.g, side, &it.runs, &it.jump, coef);
+            }
+            for &l in &s.iface_dofs {
+                s.g[l as usize] *= s.inv_mult[l as usize];
+            }
+            s.op.apply(&s.g, &mut s.r);
+            let j: f64 = s.iface_dofs.iter().map(|&l| s.g[l as usize] * s.r[l as usize]).sum();
+            for &l in &s.iface_dofs {
+                s.g[l as usize] = 0.0;
+            }
+            let e: f64 = s.b.iter().zip(&s.cg_v).map(|(b, v)| b * v).sum();
+            s.cg_energy = (j, e);
+        });
+        // Summed serially in subdomain order (thread-count independent).
+        let (j, e) = self
+            .subs
+            .iter()
+            .fold((0.0, 0.0), |(a, b), s| (a + s.cg_energy.0, b + s.cg_energy.1));
+        (j, e)
+    }
+
     /// `z = (I − P Pᵀ) Σ_E B_E S_E B_Eᵀ r` with `S_E` the Schur complement
     /// of the subdomain on its interface (Dirichlet: the interface force
     /// that holds the displacement `Bᵀr` with the interior free), or `K_E`
@@ -1301,8 +1385,12 @@ impl DdSolver {
         self.subs.par_iter_mut().for_each(|s| {
             for &(i, is_lo) in &s.ifaces {
                 let it = &ifaces[i];
-                let (side, coef) = if is_lo { (Side::Lo, 1.0) } else { (Side::Hi, -1.0) };
-                kernels::scatter_add_runs(&mut s.g, side, &it.runs, &it.cg_r, coef);
+                let (side, coef, w) = if is_lo {
+                    (Side::Lo, 1.0, &it.w.lo)
+                } else {
+                    (Side::Hi, -1.0, &it.w.hi)
+                };
+                scaling::scatter_add_scaled_runs(&mut s.g, side, &it.runs, &it.cg_r, w, coef);
             }
             // s.r is free between global steps: K_E B_Eᵀ r (lumped) or
             // S_E B_Eᵀ r (Dirichlet) goes there.
@@ -1316,7 +1404,14 @@ impl DdSolver {
         });
         let subs = &self.subs;
         self.ifaces.par_iter_mut().for_each(|it| {
-            kernels::jump_runs(&mut it.cg_z, &subs[it.lo].r, &subs[it.hi].r, &it.runs);
+            scaling::scaled_jump_runs(
+                &mut it.cg_z,
+                &subs[it.lo].r,
+                &it.w.lo,
+                &subs[it.hi].r,
+                &it.w.hi,
+                &it.runs,
+            );
         });
         // Circulations of the redundant pair forces at cross points (zero
         // net force on every subdomain) are null directions too: project z

@@ -6,6 +6,7 @@
 #![allow(clippy::needless_range_loop, clippy::neg_cmp_op_on_partial_ord)]
 pub mod bench;
 pub mod capi;
+pub mod cg_stopping;
 pub mod coarse;
 pub mod dd;
 pub mod decomposition;
@@ -18,6 +19,7 @@ pub mod model;
 pub mod partition;
 pub mod report;
 pub mod result;
+pub mod scaling;
 pub mod scene;
 pub mod solve;
 pub mod subdomain;
