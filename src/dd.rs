@@ -661,7 +661,7 @@ impl DdSolver {
     }
 
     /// Weights of the CG preconditioner's scaled jump operator `B_D`
-    /// ([`crate::scaling`]; default [`InterfaceScaling::Stiffness`]). For
+    /// ([`crate::scaling`]; default [`InterfaceScaling::Contrast`]). For
     /// comparisons; later solves use them. Set-up cost only (allocates).
     pub fn set_interface_scaling(&mut self, kind: InterfaceScaling) {
         let entries: Vec<scaling::InterfaceEntries<'_>> = self
@@ -680,7 +680,9 @@ impl DdSolver {
             .map(|s| s.inv_mult.iter().map(|&w| (1.0 / w).round() as u32).collect())
             .collect();
         let diag: Vec<Vec<f64>> = match kind {
-            InterfaceScaling::Stiffness => self.subs.iter().map(|s| s.op.diagonal()).collect(),
+            InterfaceScaling::Stiffness | InterfaceScaling::Contrast => {
+                self.subs.iter().map(|s| s.op.diagonal()).collect()
+            }
             _ => Vec::new(),
         };
         let weights = scaling::interface_weights(&entries, &self.dof_maps, &mult, &diag, kind);
