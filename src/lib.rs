@@ -6,6 +6,7 @@
 #![allow(clippy::needless_range_loop, clippy::neg_cmp_op_on_partial_ord)]
 pub mod bench;
 pub mod capi;
+pub mod cg_stopping;
 pub mod coarse;
 pub mod dd;
 pub mod decomposition;
@@ -20,6 +21,7 @@ pub mod outcome;
 pub mod ordering;
 pub mod partition;
 pub mod result;
+pub mod scaling;
 pub mod scene;
 pub mod settings;
 pub mod solve;
