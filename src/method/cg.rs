@@ -7,10 +7,10 @@ use crate::cg_stopping::{self, CgStopping};
 use crate::dd::DdSolver;
 use crate::error::Result;
 use crate::kernels::{self, Side};
-use crate::scaling::{self, EntryWeights, InterfaceScaling};
 use crate::method::stopping::{ending, stalled};
 use crate::outcome::{Outcome, Status};
 use crate::result::HistoryEntry;
+use crate::scaling::{self, EntryWeights, InterfaceScaling};
 use rayon::prelude::*;
 use std::time::Instant;
 
@@ -195,7 +195,8 @@ impl DdSolver {
                 })
             };
             converged = converged
-                || (indicator <= tol && (restarts >= 2 || stalled(&history[history.len() - (iterations - restart_at)..])));
+                || (indicator <= tol
+                    && (restarts >= 2 || stalled(&history[history.len() - (iterations - restart_at)..])));
             if converged {
                 break;
             }
@@ -367,7 +368,8 @@ impl DdSolver {
         ws.energy.iter().fold((0.0, 0.0), |(a, b), &(j, e)| (a + j, b + e))
     }
 
-    /// `z = (I − P Pᵀ) Σ_E B_E S_E B_Eᵀ r` with `S_E` the Schur complement
+    /// `z = (I − P Pᵀ) Σ_E B_D,E S_E B_D,Eᵀ r` (`B_D` the jump operator
+    /// scaled by the workspace's weights, [`crate::scaling`]) with `S_E` the Schur complement
     /// of the subdomain on its interface (Dirichlet: the interface force
     /// that holds the displacement `Bᵀr` with the interior free), or `K_E`
     /// itself on the interface dofs (lumped: interior held at zero), then
