@@ -60,7 +60,12 @@ pub fn decompose(model: &Model, scene: &Scene, subdomains: usize) -> Result<Deco
 }
 
 /// Builds the decomposition the options ask for (user partition first).
-pub fn decompose_with(model: &Model, scene: &Scene, subdomains: usize, partitioner: Partitioner) -> Result<Decomposition> {
+pub fn decompose_with(
+    model: &Model,
+    scene: &Scene,
+    subdomains: usize,
+    partitioner: Partitioner,
+) -> Result<Decomposition> {
     let partition = if !scene.elements.subdomain.is_empty() {
         Partition::from_user(model, &scene.elements.subdomain)?
     } else {
