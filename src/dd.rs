@@ -23,6 +23,7 @@ use crate::method::cg::CgWorkspace;
 pub use crate::method::stopping::{stalled, stopping_factor, CONTRACTION_CAP, CONTRACTION_WINDOW};
 use crate::model::{Model, FIXED};
 use crate::outcome::Outcome;
+use crate::scaling::InterfaceScaling;
 use crate::settings::{MethodConfig, Preconditioner, SearchDirection, SolverSettings};
 use crate::subdomain::{InteriorProblem, SubdomainOperator};
 use faer::Mat;
@@ -293,7 +294,7 @@ pub struct DdSolver {
     pub(crate) opts: DdOptions,
     n_free: usize,
     pub(crate) n_cables: usize,
-    dof_maps: Vec<Vec<usize>>,
+    pub(crate) dof_maps: Vec<Vec<usize>>,
     stats: DdStats,
     /// The CG method's workspace (`None` unless the method is cg).
     pub(crate) cg: Option<CgWorkspace>,
@@ -618,6 +619,7 @@ impl DdSolver {
                 solver.ifaces.iter().map(|it| it.force.len()),
                 solver.subs.iter().map(|s| s.v.len()),
             ));
+            solver.set_interface_scaling(InterfaceScaling::default());
             if solver.opts.preconditioner == Preconditioner::Dirichlet {
                 let t = Instant::now();
                 solver.subs.par_iter_mut().try_for_each(|st| -> Result<()> {

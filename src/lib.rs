@@ -7,6 +7,7 @@
 pub mod algebraic;
 pub mod bench;
 pub mod capi;
+pub mod cg_stopping;
 pub mod coarse;
 pub mod dd;
 pub mod decomposition;
@@ -22,6 +23,7 @@ pub mod ordering;
 pub mod outcome;
 pub mod partition;
 pub mod result;
+pub mod scaling;
 pub mod scene;
 pub mod settings;
 pub mod solve;

@@ -31,12 +31,16 @@ static GLOBAL: Counting = Counting;
 
 #[test]
 fn extra_iterations_allocate_nothing() {
-    // The stationary iteration, linear and nonsmooth, and the interface CG.
-    for (unilateral, krylov, preconditioner) in [
-        (false, false, Preconditioner::Dirichlet),
-        (true, false, Preconditioner::Dirichlet),
-        (false, true, Preconditioner::Dirichlet),
-        (false, true, Preconditioner::Lumped),
+    // The stationary iteration, linear and nonsmooth, and the interface CG;
+    // with a huge tolerance CG also runs its energy stopping test (one
+    // product with K_E per subdomain, src/cg_stopping.rs) every iteration
+    // until it certifies.
+    for (unilateral, krylov, preconditioner, tolerance) in [
+        (false, false, Preconditioner::Dirichlet, 0.0),
+        (true, false, Preconditioner::Dirichlet, 0.0),
+        (false, true, Preconditioner::Dirichlet, 0.0),
+        (false, true, Preconditioner::Lumped, 0.0),
+        (false, true, Preconditioner::Dirichlet, 1e300),
     ] {
         let scene = grid(&GridParams {
             nx: 8,
@@ -60,7 +64,7 @@ fn extra_iterations_allocate_nothing() {
             let mut dd = DdSolver::new(&model, &dec, opts.clone()).unwrap();
             let f = model.load_cases[0].clone();
             let count = |dd: &mut DdSolver, k: usize| {
-                dd.set_stopping(0.0, k);
+                dd.set_stopping(tolerance, k);
                 let before = ALLOCATIONS.load(Ordering::SeqCst);
                 let out = dd.solve(&f, false, None).unwrap();
                 let n = ALLOCATIONS.load(Ordering::SeqCst) - before;

@@ -3,12 +3,14 @@
 //! ([`CgWorkspace`]): the direction, residual and iterate live here, not
 //! in the solver's state, so the operator is applied to them directly.
 
+use crate::cg_stopping::{self, CgStopping};
 use crate::dd::DdSolver;
 use crate::error::Result;
 use crate::kernels::{self, Side};
-use crate::method::stopping::{ending, stalled, stopping_factor};
+use crate::method::stopping::{ending, stalled};
 use crate::outcome::{Outcome, Status};
 use crate::result::HistoryEntry;
+use crate::scaling::{self, EntryWeights, InterfaceScaling};
 use rayon::prelude::*;
 use std::time::Instant;
 
@@ -28,6 +30,12 @@ pub(crate) struct CgWorkspace {
     p: Vec<Vec<f64>>,
     /// Per subdomain: displacement of the current forces (the iterate).
     v: Vec<Vec<f64>>,
+    /// Per interface: weights of the preconditioner's scaled jump operator
+    /// `B_D` ([`crate::scaling`], set by [`DdSolver::set_interface_scaling`]).
+    w: Vec<EntryWeights>,
+    /// Per subdomain: its parts of the stopping energies
+    /// ([`DdSolver::cg_energies`]).
+    energy: Vec<(f64, f64)>,
 }
 
 impl CgWorkspace {
@@ -37,11 +45,14 @@ impl CgWorkspace {
         subdomain_sizes: impl Iterator<Item = usize>,
     ) -> CgWorkspace {
         let zeros = |s: usize| vec![0.0; s];
+        let v: Vec<Vec<f64>> = subdomain_sizes.map(zeros).collect();
         CgWorkspace {
             r: interface_sizes.clone().map(zeros).collect(),
             z: interface_sizes.clone().map(zeros).collect(),
-            p: interface_sizes.map(zeros).collect(),
-            v: subdomain_sizes.map(zeros).collect(),
+            p: interface_sizes.clone().map(zeros).collect(),
+            w: interface_sizes.map(|_| EntryWeights::default()).collect(),
+            energy: vec![(0.0, 0.0); v.len()],
+            v,
         }
     }
 }
@@ -99,6 +110,7 @@ impl DdSolver {
         }
         let mut iterations = 0;
         let (mut best, mut restarts, mut restart_at) = (f64::INFINITY, 0, 0);
+        let mut energy_terms = CgStopping::default();
         // How the loop ended when not by the stopping test or the limit.
         let mut ended: Option<(Status, String)> = None;
         while !converged && iterations < self.opts.max_iterations {
@@ -138,6 +150,7 @@ impl DdSolver {
                 break;
             }
             let a = rz / pq;
+            energy_terms.push(a * rz);
             // F += a p, r −= a q (q = −jump), V += a V_hom.
             self.ifaces
                 .par_iter_mut()
@@ -168,14 +181,22 @@ impl DdSolver {
                 ended = Some((Status::Diverged, "the iterate is no longer finite (NaN or Inf)".into()));
                 break;
             }
-            // Below the tolerance, stop once the contraction-aware test
-            // passes, or once restarts show the residual has reached the
-            // floor that round-off allows (it cannot fall further).
-            converged = indicator <= self.opts.tolerance
-                && (restarts >= 2 || {
-                    let recent = &history[history.len() - (iterations - restart_at)..];
-                    indicator * stopping_factor(recent) <= self.opts.tolerance || stalled(recent)
-                });
+            // Stop (Status::Converged either way) when the energy error
+            // estimate from the CG coefficients is certified
+            // (crate::cg_stopping, computed only once the indicator is
+            // close); or, with the indicator itself below the tolerance,
+            // once restarts or a stall show the residual is on the floor
+            // that round-off allows (it cannot fall further).
+            let tol = self.opts.tolerance;
+            converged = cg_stopping::indicator_allows(indicator, tol) && {
+                let (jump_energy, load_energy) = self.cg_energies(ws);
+                energy_terms.tail().is_some_and(|tail| {
+                    cg_stopping::certified(cg_stopping::relative_energy_error(jump_energy, tail, load_energy), tol)
+                })
+            };
+            converged = converged
+                || (indicator <= tol
+                    && (restarts >= 2 || stalled(&history[history.len() - (iterations - restart_at)..])));
             if converged {
                 break;
             }
@@ -193,6 +214,7 @@ impl DdSolver {
                 // the forces and restart from the steepest direction.
                 restarts += 1;
                 restart_at = iterations;
+                energy_terms.reset();
                 rz = self.cg_start(ws);
                 best = f64::INFINITY;
                 continue;
@@ -282,7 +304,73 @@ impl DdSolver {
         }
     }
 
-    /// `z = (I − P Pᵀ) Σ_E B_E S_E B_Eᵀ r` with `S_E` the Schur complement
+    /// Weights of the CG preconditioner's scaled jump operator `B_D`
+    /// ([`crate::scaling`]; default [`InterfaceScaling::Contrast`]). For
+    /// comparisons; later solves use them. Set-up cost only (allocates).
+    /// Without the CG workspace (another method) there is nothing to set.
+    pub fn set_interface_scaling(&mut self, kind: InterfaceScaling) {
+        let Some(ws) = self.cg.as_mut() else {
+            return;
+        };
+        let entries: Vec<scaling::InterfaceEntries<'_>> = self
+            .ifaces
+            .iter()
+            .map(|it| scaling::InterfaceEntries {
+                lo: it.lo,
+                hi: it.hi,
+                lo_idx: &it.lo_idx,
+                hi_idx: &it.hi_idx,
+            })
+            .collect();
+        let mult: Vec<Vec<u32>> = self
+            .subs
+            .iter()
+            .map(|s| s.inv_mult.iter().map(|&w| (1.0 / w).round() as u32).collect())
+            .collect();
+        let diag: Vec<Vec<f64>> = match kind {
+            InterfaceScaling::Stiffness | InterfaceScaling::Contrast => {
+                self.subs.iter().map(|s| s.op.diagonal()).collect()
+            }
+            _ => Vec::new(),
+        };
+        ws.w = scaling::interface_weights(&entries, &self.dof_maps, &mult, &diag, kind);
+    }
+
+    /// The energies of the CG stopping test ([`crate::cg_stopping`]) for
+    /// the iterate `ws.v`, with `jump` = `J ws.v` (as [`Self::cg_indicator`]
+    /// leaves it): `J = Σ_E (ū_E − v_E)ᵀ K_E (ū_E − v_E)`, the strain energy
+    /// that averaging the copies adds (`ū − v_E` at a dof of multiplicity
+    /// `m` is `1/m` of the signed sum of its pair jumps), and `E = Σ_E b_Eᵀ
+    /// v_E`, the work of the loads (`‖u*‖_K²` at convergence). One product
+    /// with `K_E` per subdomain; no allocation.
+    fn cg_energies(&mut self, ws: &mut CgWorkspace) -> (f64, f64) {
+        let ifaces = &self.ifaces;
+        self.subs
+            .par_iter_mut()
+            .zip(ws.v.par_iter().zip(ws.energy.par_iter_mut()))
+            .for_each(|(s, (cv, energy))| {
+                for &(i, is_lo) in &s.ifaces {
+                    let it = &ifaces[i];
+                    let (side, coef) = if is_lo { (Side::Lo, -1.0) } else { (Side::Hi, 1.0) };
+                    kernels::scatter_add_runs(&mut s.g, side, &it.runs, &it.jump, coef);
+                }
+                for &l in &s.iface_dofs {
+                    s.g[l as usize] *= s.inv_mult[l as usize];
+                }
+                s.op.apply(&s.g, &mut s.r);
+                let j: f64 = s.iface_dofs.iter().map(|&l| s.g[l as usize] * s.r[l as usize]).sum();
+                for &l in &s.iface_dofs {
+                    s.g[l as usize] = 0.0;
+                }
+                let e: f64 = s.b.iter().zip(cv).map(|(b, v)| b * v).sum();
+                *energy = (j, e);
+            });
+        // Summed serially in subdomain order (thread-count independent).
+        ws.energy.iter().fold((0.0, 0.0), |(a, b), &(j, e)| (a + j, b + e))
+    }
+
+    /// `z = (I − P Pᵀ) Σ_E B_D,E S_E B_D,Eᵀ r` (`B_D` the jump operator
+    /// scaled by the workspace's weights, [`crate::scaling`]) with `S_E` the Schur complement
     /// of the subdomain on its interface (Dirichlet: the interface force
     /// that holds the displacement `Bᵀr` with the interior free), or `K_E`
     /// itself on the interface dofs (lumped: interior held at zero), then
@@ -291,12 +379,16 @@ impl DdSolver {
     /// and break the iteration on long runs.
     fn precondition(&mut self, ws: &mut CgWorkspace) {
         let ifaces = &self.ifaces;
-        let cr = &ws.r;
+        let (cr, cw) = (&ws.r, &ws.w);
         self.subs.par_iter_mut().for_each(|s| {
             for &(i, is_lo) in &s.ifaces {
                 let it = &ifaces[i];
-                let (side, coef) = if is_lo { (Side::Lo, 1.0) } else { (Side::Hi, -1.0) };
-                kernels::scatter_add_runs(&mut s.g, side, &it.runs, &cr[i], coef);
+                let (side, coef, w) = if is_lo {
+                    (Side::Lo, 1.0, &cw[i].lo)
+                } else {
+                    (Side::Hi, -1.0, &cw[i].hi)
+                };
+                scaling::scatter_add_scaled_runs(&mut s.g, side, &it.runs, &cr[i], w, coef);
             }
             // s.r is free between global steps: K_E B_Eᵀ r (lumped) or
             // S_E B_Eᵀ r (Dirichlet) goes there.
@@ -309,9 +401,12 @@ impl DdSolver {
             }
         });
         let subs = &self.subs;
-        self.ifaces.par_iter().zip(ws.z.par_iter_mut()).for_each(|(it, cz)| {
-            kernels::jump_runs(cz, &subs[it.lo].r, &subs[it.hi].r, &it.runs);
-        });
+        self.ifaces
+            .par_iter()
+            .zip(ws.z.par_iter_mut().zip(ws.w.par_iter()))
+            .for_each(|(it, (cz, w))| {
+                scaling::scaled_jump_runs(cz, &subs[it.lo].r, &w.lo, &subs[it.hi].r, &w.hi, &it.runs);
+            });
         // Circulations of the redundant pair forces at cross points (zero
         // net force on every subdomain) are null directions too: project z
         // onto the differences of subdomain forces, `z ← (B_lo z − B_hi z)/m`
