@@ -476,13 +476,25 @@ enum NsddStatus nsdd_options_set_preconditioner(struct NsddOptions *options,
 enum NsddStatus nsdd_options_set_partitioner(struct NsddOptions *options, uint32_t partitioner);
 
 /**
- * Sets the number of subdomains of the automatic partition (>= 1; ignored
- * by the direct method and at the algebraic level).
+ * Sets the number of subdomains of the automatic partition; 0 means
+ * automatic, as [`nsdd_options_set_subdomains_auto`] (ignored by the direct
+ * method and at the algebraic level).
  *
  * # Safety
  * `options` must be a live options handle.
  */
 enum NsddStatus nsdd_options_set_subdomains(struct NsddOptions *options, size_t subdomains);
+
+/**
+ * Lets the solver choose the number of subdomains from the size and the
+ * thread count: `max(threads, ceil(free dofs / 8000))`, at least 2, at most
+ * `elements / 16` (the default unless the scene sets a count). The
+ * result's notes say what was chosen.
+ *
+ * # Safety
+ * `options` must be a live options handle.
+ */
+enum NsddStatus nsdd_options_set_subdomains_auto(struct NsddOptions *options);
 
 /**
  * Sets the stopping tolerance on the iteration indicator (finite, > 0).

@@ -127,6 +127,16 @@ fn parse_count(s: &str) -> std::result::Result<usize, String> {
     }
 }
 
+/// A subdomain count: a whole number, or `auto` (= 0: chosen from the size
+/// and the thread count).
+fn parse_subdomains(s: &str) -> std::result::Result<usize, String> {
+    if s == "auto" {
+        return Ok(0);
+    }
+    s.parse::<usize>()
+        .map_err(|_| format!("must be a whole number (0 = automatic) or \"auto\", got {s}"))
+}
+
 /// A whole number of at least 0.
 fn parse_non_negative(s: &str) -> std::result::Result<usize, String> {
     s.parse::<usize>()
@@ -140,8 +150,8 @@ struct SolveArgs {
     /// Solution method
     #[arg(long, value_enum)]
     method: Option<MethodArg>,
-    /// Number of subdomains (iterative methods)
-    #[arg(long, value_name = "N", value_parser = parse_count, allow_hyphen_values = true)]
+    /// Number of subdomains (iterative methods); auto or 0: chosen from the size and the threads (the default unless the scene sets it)
+    #[arg(long, value_name = "N|auto", value_parser = parse_subdomains, allow_hyphen_values = true)]
     subdomains: Option<usize>,
     /// Automatic partitioner: bisection or metis (default: the scene's [solver] partitioner)
     #[arg(long, value_name = "P")]
@@ -182,8 +192,8 @@ struct GenArgs {
 struct PartitionArgs {
     /// Scene file
     scene: PathBuf,
-    /// Number of subdomains (default: the scene's [solver] subdomains)
-    #[arg(long, value_name = "N", value_parser = parse_count, allow_hyphen_values = true)]
+    /// Number of subdomains, or auto (default: the scene's [solver] subdomains, automatic when unset)
+    #[arg(long, value_name = "N|auto", value_parser = parse_subdomains, allow_hyphen_values = true)]
     subdomains: Option<usize>,
     /// Automatic partitioner: bisection or metis (default: the scene's [solver] partitioner)
     #[arg(long, value_name = "P")]
@@ -200,8 +210,8 @@ struct AccuracyArgs {
     /// Output directory (accuracy.csv, accuracy.svg, history-<method>.csv/.svg)
     #[arg(long, value_name = "DIR")]
     out: PathBuf,
-    /// Subdomains of the iterative methods (default: the scene's, or 4 when it asks for 1)
-    #[arg(long, value_name = "N", value_parser = parse_count, allow_hyphen_values = true)]
+    /// Subdomains of the iterative methods, or auto (default: the scene's, automatic when unset, 4 when it asks for 1)
+    #[arg(long, value_name = "N|auto", value_parser = parse_subdomains, allow_hyphen_values = true)]
     subdomains: Option<usize>,
     /// Tolerances to sweep, comma separated
     #[arg(
@@ -548,6 +558,13 @@ fn cmd_solve(a: SolveArgs) -> Result<i32> {
         wrote.push(path.display().to_string());
     }
     print!("{}", report::summary(&scene, &result));
+    for w in result
+        .notes
+        .iter()
+        .filter(|n| n.starts_with(nsdd::solve::WARNING_PREFIX))
+    {
+        eprintln!("{w}");
+    }
     for w in wrote {
         println!("wrote       {w}");
     }

@@ -19,7 +19,7 @@ use nsdd::error::{Error, Result};
 use nsdd::model::Model;
 use nsdd::result::SolveResult;
 use nsdd::scene::{ElementKind, Method, Partitioner, Preconditioner, Scene, SearchDirection};
-use nsdd::solve::{decompose, solve_with_progress, SolveOptions};
+use nsdd::solve::{auto_subdomains, decompose, solve_with_progress, SolveOptions, WARNING_PREFIX};
 use nsdd::subdomain::SubdomainOperator;
 
 // ---------------------------------------------------------------------------
@@ -138,7 +138,8 @@ pub fn summary(scene: &Scene, r: &SolveResult) -> String {
             r.load_cases.iter().all(|c| c.converged)
         );
     }
-    for n in &r.notes {
+    // Warnings go to stderr (`nsdd solve`), not into the summary.
+    for n in r.notes.iter().filter(|n| !n.starts_with(WARNING_PREFIX)) {
         let _ = writeln!(s, "note        {n}");
     }
     s
@@ -372,14 +373,15 @@ pub struct AccuracyOptions {
 }
 
 impl AccuracyOptions {
-    /// The scene's settings, 4 subdomains when the scene asks for one, and
+    /// The scene's settings (an automatic count stays 0, resolved where the
+    /// decomposition is made), 4 subdomains when the scene asks for one, and
     /// the decades 1e-2 … 1e-10.
     pub fn from_scene(scene: &Scene) -> AccuracyOptions {
         AccuracyOptions {
-            subdomains: if scene.solver.subdomains > 1 {
-                scene.solver.subdomains
-            } else {
+            subdomains: if scene.solver.subdomains == 1 {
                 4
+            } else {
+                scene.solver.subdomains
             },
             tolerances: default_tolerances(),
             methods: ITERATIVE_METHODS.to_vec(),
@@ -616,9 +618,15 @@ pub fn accuracy(scene: &Scene, opts: &AccuracyOptions, mut obs: Observer<'_>) ->
             histories.push(history_with_errors(scene, opts, method, tol, &r, &reference, &mut obs)?);
         }
     }
+    // The count the runs used (decompose resolves an automatic 0 the same way).
+    let subdomains = if opts.subdomains == 0 && scene.elements.subdomain.is_empty() {
+        auto_subdomains(&Model::from_scene(scene)?)
+    } else {
+        opts.subdomains
+    };
     Ok(AccuracyReport {
         scene: reference.scene.clone(),
-        subdomains: opts.subdomains,
+        subdomains,
         rows,
         histories,
         notes,

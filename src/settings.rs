@@ -141,7 +141,11 @@ impl std::str::FromStr for SearchDirection {
 pub struct SolverSettings {
     #[serde(default)]
     pub method: Method,
-    #[serde(default = "default_subdomains")]
+    /// Subdomains of the automatic partition; 0 (also written `"auto"`,
+    /// and the default when absent) lets the solver choose from the size
+    /// and the thread count ([`crate::partition::resolve_subdomains`]).
+    /// Not written when automatic.
+    #[serde(default, deserialize_with = "subdomains_from_scene", skip_serializing_if = "is_auto")]
     pub subdomains: usize,
     #[serde(default = "default_tolerance")]
     pub tolerance: f64,
@@ -187,8 +191,29 @@ impl std::str::FromStr for Partitioner {
     }
 }
 
-fn default_subdomains() -> usize {
-    1
+/// `subdomains = N | 0 | "auto"` (0 and `"auto"` mean automatic).
+fn subdomains_from_scene<'de, D: serde::Deserializer<'de>>(d: D) -> std::result::Result<usize, D::Error> {
+    #[derive(Deserialize)]
+    #[serde(untagged)]
+    enum Raw {
+        Int(i64),
+        Str(String),
+    }
+    match Raw::deserialize(d)? {
+        Raw::Int(n) => usize::try_from(n).map_err(|_| {
+            serde::de::Error::custom(format!(
+                "solver.subdomains: expected a whole number of at least 0 or \"auto\", got {n}"
+            ))
+        }),
+        Raw::Str(s) if s == "auto" => Ok(0),
+        Raw::Str(s) => Err(serde::de::Error::custom(format!(
+            "solver.subdomains: expected a whole number or \"auto\", got \"{s}\""
+        ))),
+    }
+}
+
+fn is_auto(subdomains: &usize) -> bool {
+    *subdomains == 0
 }
 fn default_tolerance() -> f64 {
     1e-8
@@ -201,7 +226,7 @@ impl Default for SolverSettings {
     fn default() -> Self {
         SolverSettings {
             method: Method::Direct,
-            subdomains: default_subdomains(),
+            subdomains: 0,
             tolerance: default_tolerance(),
             max_iterations: default_max_iterations(),
             search_direction: SearchDirection::Auto,
@@ -222,9 +247,6 @@ impl SolverSettings {
                 None,
                 format!("must be positive, got {tolerance}"),
             ));
-        }
-        if self.subdomains == 0 {
-            return Err(Error::input("solver.subdomains", None, "must be at least 1"));
         }
         if self.max_iterations == 0 {
             return Err(Error::input("solver.max_iterations", None, "must be at least 1"));

@@ -35,7 +35,7 @@ use crate::error::Result;
 use crate::model::Model;
 use crate::nonsmooth::{NonsmoothCg, NonsmoothOptions};
 use crate::outcome::{Outcome, Status};
-use crate::partition::Partition;
+use crate::partition::{resolve_subdomains, Partition};
 use crate::result::{CaseResult, HistoryEntry, SolveResult, Timings};
 use crate::scene::{Method, Partitioner, Scene};
 pub use crate::settings::SolverSettings;
@@ -57,13 +57,14 @@ pub enum Prepared {
     NonsmoothCg(Box<NonsmoothCg>),
 }
 
-/// Builds the decomposition of `scene` into `subdomains` with the scene's
-/// partitioner (user partition first).
+/// Builds the decomposition of `scene` into `subdomains` (0: automatic)
+/// with the scene's partitioner (user partition first).
 pub fn decompose(model: &Model, scene: &Scene, subdomains: usize) -> Result<Decomposition> {
     decompose_with(model, scene, subdomains, scene.solver.partitioner)
 }
 
-/// Builds the decomposition the options ask for (user partition first).
+/// Builds the decomposition the options ask for (user partition first;
+/// `subdomains = 0` is resolved by [`auto_subdomains`]).
 pub fn decompose_with(
     model: &Model,
     scene: &Scene,
@@ -73,9 +74,64 @@ pub fn decompose_with(
     let partition = if !scene.elements.subdomain.is_empty() {
         Partition::from_user(model, &scene.elements.subdomain)?
     } else {
-        Partition::automatic(model, subdomains, partitioner)?
+        let n = if subdomains == 0 {
+            auto_subdomains(model)
+        } else {
+            subdomains
+        };
+        Partition::automatic(model, n, partitioner)?
     };
     Ok(Decomposition::new(model, partition))
+}
+
+/// The automatic subdomain count of `model` on this machine
+/// ([`resolve_subdomains`] with the model's size and rayon's thread count).
+pub fn auto_subdomains(model: &Model) -> usize {
+    resolve_subdomains(0, model.n_free, model.elements.len(), rayon::current_num_threads())
+}
+
+/// Share of the free dofs on an interface above which the result warns:
+/// the iteration then works on (nearly) the whole problem, with tiny
+/// subdomains, and is far slower than fewer subdomains.
+pub const INTERFACE_WARNING_FRACTION: f64 = 0.5;
+
+/// Notes that start with this are warnings (the CLI prints them to stderr).
+pub const WARNING_PREFIX: &str = "warning: ";
+
+/// Free dofs on at least one interface.
+fn interface_dofs(dec: &Decomposition, n_free: usize) -> usize {
+    let mut on = vec![false; n_free];
+    for &d in &dec.entry_dof {
+        on[d] = true;
+    }
+    on.iter().filter(|&&b| b).count()
+}
+
+/// The notes on the subdomain count: how an automatic count was chosen,
+/// and a warning when most free dofs are on interfaces.
+fn subdomain_notes(model: &Model, scene: &Scene, opts: &SolveOptions, dec: &Decomposition) -> Vec<String> {
+    let mut notes = Vec::new();
+    let n = dec.len();
+    if opts.subdomains == 0 && scene.elements.subdomain.is_empty() {
+        notes.push(format!(
+            "subdomains: {n}, chosen automatically from {} free dofs, {} elements and {} threads",
+            model.n_free,
+            model.elements.len(),
+            rayon::current_num_threads()
+        ));
+    }
+    let on = interface_dofs(dec, model.n_free);
+    let fraction = on as f64 / model.n_free.max(1) as f64;
+    if fraction > INTERFACE_WARNING_FRACTION {
+        notes.push(format!(
+            "{WARNING_PREFIX}{:.0}% of the free dofs ({on} of {}) are on interfaces with {n} subdomains: \
+             the iteration will be slow; fewer subdomains (the automatic count here is {}) are faster",
+            100.0 * fraction,
+            model.n_free,
+            auto_subdomains(model)
+        ));
+    }
+    notes
 }
 
 /// Sets up the solver for `model` (factorizations, coarse problem).
@@ -313,6 +369,11 @@ pub fn solve_with_progress(scene: &Scene, opts: &SolveOptions, mut progress: Pro
             "nonsmooth cg: {outer} active-set steps ({setups} DD set-ups), {} interface CG iterations in all",
             top.iterations
         ));
+    }
+    match &prepared {
+        Prepared::Dd(_, dec) => notes.extend(subdomain_notes(&model, scene, opts, dec)),
+        Prepared::NonsmoothCg(ns) => notes.extend(subdomain_notes(&model, scene, opts, ns.decomposition())),
+        Prepared::Direct(_) => {}
     }
     let last_dd = match &prepared {
         Prepared::Dd(dd, _) => Some(&**dd),

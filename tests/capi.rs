@@ -559,10 +559,12 @@ fn options_reject_bad_values() {
             NsddStatus::NullPointer,
             "options",
         );
+        // 0 is the automatic count, not an error.
+        ok(nsdd_options_set_subdomains(o, 0));
         expect_err(
-            nsdd_options_set_subdomains(o, 0),
-            NsddStatus::InvalidArgument,
-            "subdomains",
+            nsdd_options_set_subdomains_auto(null_mut()),
+            NsddStatus::NullPointer,
+            "options",
         );
         expect_err(
             nsdd_options_set_tolerance(null_mut(), 1.0),

@@ -275,7 +275,7 @@ fn negative_flag_values_reach_the_flags_own_check() {
         ),
         (
             &["solve", g, "--subdomains", "-2"],
-            "'--subdomains <N>': must be a whole number of at least 1",
+            "'--subdomains <N|auto>': must be a whole number (0 = automatic) or \"auto\", got -2",
         ),
         (
             &["solve", g, "--max-iterations", "-5"],
@@ -287,7 +287,7 @@ fn negative_flag_values_reach_the_flags_own_check() {
         ),
         (
             &["partition", g, "--subdomains", "-4"],
-            "'--subdomains <N>': must be a whole number",
+            "'--subdomains <N|auto>': must be a whole number",
         ),
         (
             &["accuracy", g, "--out", "unused", "--tolerances", "1e-2,-1e-3"],
@@ -716,4 +716,92 @@ fn cg_preconditioner_flag() {
         "{}",
         text(&out.stderr)
     );
+}
+
+/// Issue #20 item 4: a generated scene leaves the subdomain count unset,
+/// and `solve --method multilevel` without `--subdomains` chooses it from
+/// the size and the thread count (`max(threads, ceil(free dofs / 8000))`,
+/// at least 2, at most elements / 16), says so, and matches the direct
+/// solution. Before, generated scenes said `subdomains = 1` and the
+/// "multilevel" run had no interface at all.
+#[test]
+fn automatic_subdomain_count() {
+    let d = tmp("auto-subdomains");
+    let scene = d.join("g.toml");
+    ok(&nsdd(&["gen", "grid", "nx=8", "ny=8", "--out", s(&scene)]));
+    let body = std::fs::read_to_string(&scene).unwrap();
+    assert!(!body.contains("subdomains"), "generated scene sets a count:\n{body}");
+    let direct = d.join("direct.json");
+    ok(&nsdd(&["solve", s(&scene), "--method", "direct", "--out", s(&direct)]));
+    let rd = read_json(&direct);
+    // 625 elements, 339 free dofs: the thread count decides (3 ≤ 625/16).
+    for extra in [&[][..], &["--subdomains", "auto"][..], &["--subdomains", "0"][..]] {
+        let out_json = d.join("ml.json");
+        let mut args = vec!["--threads", "3", "solve", s(&scene), "--method", "multilevel"];
+        args.extend_from_slice(extra);
+        args.extend_from_slice(&["--tolerance", "1e-10", "--out", s(&out_json)]);
+        let out = nsdd(&args);
+        ok(&out);
+        let stdout = text(&out.stdout);
+        assert!(stdout.contains("multilevel (3 subdomains"), "{extra:?}:\n{stdout}");
+        assert!(
+            stdout.contains("subdomains: 3, chosen automatically from 339 free dofs, 625 elements and 3 threads"),
+            "{extra:?}:\n{stdout}"
+        );
+        assert!(!text(&out.stderr).contains("warning"), "{}", text(&out.stderr));
+        let r = read_json(&out_json);
+        assert_eq!(r["subdomains"], 3);
+        assert!(r["stages"].as_array().unwrap().iter().any(|s| s == "interface"));
+        assert!(r["notes"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|n| n.as_str().unwrap().contains("chosen automatically")));
+        assert_matches(&r, &rd, 1e-6, "automatic count vs direct");
+    }
+    // An explicit count is kept and not called automatic.
+    let out = nsdd(&["solve", s(&scene), "--method", "multilevel", "--subdomains", "4"]);
+    ok(&out);
+    assert!(text(&out.stdout).contains("multilevel (4 subdomains"));
+    assert!(!text(&out.stdout).contains("chosen automatically"));
+}
+
+/// An extreme count (most free dofs on interfaces) runs but warns on
+/// stderr, with the interface fraction and the count; the result's notes
+/// carry the warning too. A sensible count does not warn.
+#[test]
+fn extreme_subdomain_count_warns() {
+    let d = tmp("extreme-subdomains");
+    let scene = d.join("g.toml");
+    ok(&nsdd(&["gen", "grid", "nx=4", "ny=4", "--out", s(&scene)]));
+    let r = d.join("r.json");
+    let out = nsdd(&[
+        "solve",
+        s(&scene),
+        "--method",
+        "multilevel",
+        "--subdomains",
+        "40",
+        "--out",
+        s(&r),
+    ]);
+    ok(&out);
+    let err = text(&out.stderr);
+    assert!(
+        err.contains("warning: 100% of the free dofs (75 of 75) are on interfaces with 40 subdomains"),
+        "{err}"
+    );
+    assert!(
+        !text(&out.stdout).contains("warning"),
+        "the warning goes to stderr only"
+    );
+    let notes = read_json(&r)["notes"].clone();
+    assert!(notes
+        .as_array()
+        .unwrap()
+        .iter()
+        .any(|n| n.as_str().unwrap().starts_with("warning: 100%")));
+    let out = nsdd(&["solve", s(&scene), "--method", "multilevel", "--subdomains", "2"]);
+    ok(&out);
+    assert!(!text(&out.stderr).contains("warning"), "{}", text(&out.stderr));
 }

@@ -446,8 +446,9 @@ pub unsafe extern "C" fn nsdd_options_set_partitioner(options: *mut NsddOptions,
     })
 }
 
-/// Sets the number of subdomains of the automatic partition (>= 1; ignored
-/// by the direct method and at the algebraic level).
+/// Sets the number of subdomains of the automatic partition; 0 means
+/// automatic, as [`nsdd_options_set_subdomains_auto`] (ignored by the direct
+/// method and at the algebraic level).
 ///
 /// # Safety
 /// `options` must be a live options handle.
@@ -455,10 +456,23 @@ pub unsafe extern "C" fn nsdd_options_set_partitioner(options: *mut NsddOptions,
 pub unsafe extern "C" fn nsdd_options_set_subdomains(options: *mut NsddOptions, subdomains: usize) -> NsddStatus {
     ffi_guard(|| {
         let o = unsafe { handle_mut(options, "options")? };
-        if subdomains == 0 {
-            return Err(invalid("subdomains must be at least 1"));
-        }
         o.opts.subdomains = subdomains;
+        Ok(())
+    })
+}
+
+/// Lets the solver choose the number of subdomains from the size and the
+/// thread count: `max(threads, ceil(free dofs / 8000))`, at least 2, at most
+/// `elements / 16` (the default unless the scene sets a count). The
+/// result's notes say what was chosen.
+///
+/// # Safety
+/// `options` must be a live options handle.
+#[unsafe(no_mangle)]
+pub unsafe extern "C" fn nsdd_options_set_subdomains_auto(options: *mut NsddOptions) -> NsddStatus {
+    ffi_guard(|| {
+        let o = unsafe { handle_mut(options, "options")? };
+        o.opts.subdomains = 0;
         Ok(())
     })
 }
