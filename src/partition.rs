@@ -89,16 +89,7 @@ impl Partition {
     /// [`Partition::metis`] without the weak-node repair.
     pub fn metis_kway(model: &Model, n_parts: usize) -> Result<Partition> {
         let ne = model.elements.len();
-        if n_parts == 0 {
-            return Err(Error::input("solver.subdomains", None, "must be at least 1"));
-        }
-        if n_parts > ne {
-            return Err(Error::input(
-                "solver.subdomains",
-                None,
-                format!("{n_parts} subdomains asked for but the scene has only {ne} elements"),
-            ));
-        }
+        check_part_count(n_parts, ne)?;
         let nn = model.coords.len();
         let graph = crate::ordering::Graph::from_edges(nn, model.elements.iter().map(|el| (el.a, el.b)));
         let mut weight = vec![0usize; nn];
@@ -168,16 +159,7 @@ impl Partition {
     /// one, without the weak-node repair.
     pub fn coordinate_bisection(model: &Model, n_parts: usize) -> Result<Partition> {
         let ne = model.elements.len();
-        if n_parts == 0 {
-            return Err(Error::input("solver.subdomains", None, "must be at least 1"));
-        }
-        if n_parts > ne {
-            return Err(Error::input(
-                "solver.subdomains",
-                None,
-                format!("{n_parts} subdomains asked for but the scene has only {ne} elements"),
-            ));
-        }
+        check_part_count(n_parts, ne)?;
         let mid: Vec<[f64; 3]> = model
             .elements
             .iter()
@@ -436,4 +418,20 @@ fn bisect(mid: &[[f64; 3]], ids: &mut [usize], first: usize, parts: usize, part_
     let (left, right) = ids.split_at_mut(split);
     bisect(mid, left, first, left_parts, part_of);
     bisect(mid, right, first + left_parts, parts - left_parts, part_of);
+}
+
+/// A part count an automatic partition can make: at least one, at most one
+/// element per part.
+fn check_part_count(n_parts: usize, ne: usize) -> Result<()> {
+    if n_parts == 0 {
+        return Err(Error::input("solver.subdomains", None, "must be at least 1"));
+    }
+    if n_parts > ne {
+        return Err(Error::input(
+            "solver.subdomains",
+            None,
+            format!("{n_parts} subdomains asked for but the scene has only {ne} elements"),
+        ));
+    }
+    Ok(())
 }
