@@ -1158,7 +1158,8 @@ fn bad_scenes_are_rejected_by_solve_naming_the_field() {
     for (section, field) in [
         ("[solver]\ntolerance = 0.0", "solver.tolerance"),
         ("[solver]\ntolerance = nan", "solver.tolerance"),
-        ("[solver]\nsubdomains = 0", "solver.subdomains"),
+        // 0 means "automatic" (issue #20); more parts than elements is wrong.
+        ("[solver]\nmethod = \"multilevel\"\nsubdomains = 4", "solver.subdomains"),
         ("[solver]\nmax_iterations = 0", "solver.max_iterations"),
         ("[solver]\nsearch_direction = -1.0", "solver.search_direction"),
         ("[solver]\nsearch_direction = inf", "solver.search_direction"),
@@ -1299,7 +1300,8 @@ fn solve_options_given_in_rust_are_checked_like_the_scene() {
     let bad = [
         (f64::NAN, 1, 10, SearchDirection::Auto, "solver.tolerance"),
         (0.0, 1, 10, SearchDirection::Auto, "solver.tolerance"),
-        (1e-8, 0, 10, SearchDirection::Auto, "solver.subdomains"),
+        // 0 is the automatic count (issue #20); 4 parts of 3 elements are not.
+        (1e-8, 4, 10, SearchDirection::Auto, "solver.subdomains"),
         (1e-8, 1, 0, SearchDirection::Auto, "solver.max_iterations"),
         (
             1e-8,
