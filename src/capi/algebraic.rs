@@ -347,23 +347,18 @@ pub unsafe extern "C" fn nsdd_alg_solve(
     out_iterations: *mut usize,
     out_converged: *mut bool,
 ) -> NsddStatus {
-    ffi_guard(|| {
-        let h = unsafe { handle_mut(alg, "alg")? };
-        if h.setup.is_none() {
-            return Err(not_set_up());
-        }
-        check_out_ptrs(out_u, out_lambda, h.problem.n_cables())?;
-        let ns = h.problem.n_subdomains();
-        let ptrs = unsafe { slice(rhs, ns, "rhs")? };
-        let st = h.setup.as_mut().ok_or_else(not_set_up)?;
-        let mut local: Vec<&[f64]> = Vec::with_capacity(ns);
-        for (s, &p) in ptrs.iter().enumerate() {
-            let n = h.problem.n_local(s).unwrap_or(0);
-            local.push(unsafe { slice(p, n, &format!("rhs[{s}]"))? });
-        }
-        let out = st.solve_local(&local).map_err(arg)?;
-        unsafe { alg_write_outcome(h, out, out_u, out_lambda, out_iterations, out_converged) }
-    })
+    unsafe {
+        alg_solve_with(alg, out_u, out_lambda, out_iterations, out_converged, |problem, st| {
+            let ns = problem.n_subdomains();
+            let ptrs = slice(rhs, ns, "rhs")?;
+            let mut local: Vec<&[f64]> = Vec::with_capacity(ns);
+            for (s, &p) in ptrs.iter().enumerate() {
+                let n = problem.n_local(s).unwrap_or(0);
+                local.push(slice(p, n, &format!("rhs[{s}]"))?);
+            }
+            st.solve_local(&local).map_err(arg)
+        })
+    }
 }
 
 /// Like `nsdd_alg_solve`, with the right-hand side given as one global
@@ -382,15 +377,33 @@ pub unsafe extern "C" fn nsdd_alg_solve_global(
     out_iterations: *mut usize,
     out_converged: *mut bool,
 ) -> NsddStatus {
+    unsafe {
+        alg_solve_with(alg, out_u, out_lambda, out_iterations, out_converged, |problem, st| {
+            let f = slice(f, problem.n_global_dofs(), "f")?;
+            st.solve(f).map_err(arg)
+        })
+    }
+}
+
+/// The common part of the algebraic solves: checks the handle, that it is
+/// set up and the output pointers, runs `solve` on the set-up and writes
+/// its outcome.
+///
+/// # Safety
+/// As for `nsdd_alg_solve`; `solve` reads only pointers the caller vouches for.
+unsafe fn alg_solve_with(
+    alg: *mut NsddAlgebraic,
+    out_u: *mut f64,
+    out_lambda: *mut f64,
+    out_iterations: *mut usize,
+    out_converged: *mut bool,
+    solve: impl FnOnce(&AlgebraicProblem, &mut AlgebraicSolver) -> FfiResult<crate::outcome::Outcome>,
+) -> NsddStatus {
     ffi_guard(|| {
         let h = unsafe { handle_mut(alg, "alg")? };
-        if h.setup.is_none() {
-            return Err(not_set_up());
-        }
-        check_out_ptrs(out_u, out_lambda, h.problem.n_cables())?;
-        let f = unsafe { slice(f, h.problem.n_global_dofs(), "f")? };
         let st = h.setup.as_mut().ok_or_else(not_set_up)?;
-        let out = st.solve(f).map_err(arg)?;
+        check_out_ptrs(out_u, out_lambda, h.problem.n_cables())?;
+        let out = solve(&h.problem, st)?;
         unsafe { alg_write_outcome(h, out, out_u, out_lambda, out_iterations, out_converged) }
     })
 }
