@@ -31,9 +31,11 @@ use crate::coarse::CoarseProblem;
 use rayon::prelude::*;
 
 /// The cross-subdomain operations of the iteration (see the module
-/// documentation). Subdomains and interfaces are numbered globally
-/// (the decomposition's numbering); `subs`/`items` hold this process's
-/// vectors indexed that way.
+/// documentation). Indices are positions in this process's vectors:
+/// `subs[s]` its subdomains, `items[i]` its interfaces (for [`Threads`],
+/// all of them, in the decomposition's numbering); the implementation knows
+/// which subdomains each interface joins, and where a neighbour it does
+/// not hold lives.
 pub trait Communicator: Send + Sync {
     /// For every interface `i` computed here, `f(i, &mut items[i], lo, hi)`
     /// with `lo`, `hi` the vectors `trace(&subs[·])` of its two subdomains
