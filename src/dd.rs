@@ -916,9 +916,4 @@ impl DdSolver {
     pub(crate) fn assemble(&self) -> (Vec<f64>, Vec<f64>) {
         self.op.assemble(&self.dof_maps, self.n_free, self.n_cables)
     }
-
-    /// The interface operator: what the methods apply.
-    pub fn interface_operator(&self) -> &InterfaceOperator {
-        &self.op
-    }
 }

@@ -24,12 +24,14 @@ use crate::kernels::{self, Side};
 use crate::scaling::{self, EntryWeights};
 use rayon::prelude::*;
 
-/// The set-up interface operator (see the module documentation).
-pub struct InterfaceOperator {
+/// The set-up interface operator (see the module documentation), generic
+/// over the communication seam: its code does not depend on where the
+/// subdomains live.
+pub struct InterfaceOperator<C: Communicator = Threads> {
     pub(crate) subs: Vec<SubState>,
     pub(crate) ifaces: Vec<IfaceState>,
     pub(crate) coarse: Option<CoarseProblem>,
-    pub(crate) comm: Threads,
+    pub(crate) comm: C,
     /// Per interface: `1 / multiplicity` of each entry's dof (the same on
     /// both sides), so the cross-point projection reads no neighbour's
     /// set-up data.
@@ -50,7 +52,7 @@ fn dot(x: &[f64], y: &[f64]) -> f64 {
     x.iter().zip(y).map(|(a, b)| a * b).sum::<f64>()
 }
 
-impl InterfaceOperator {
+impl InterfaceOperator<Threads> {
     /// The operator of set-up subdomains and interfaces, with the coarse
     /// problem when there is a coarse step; all in this process.
     pub(crate) fn new(subs: Vec<SubState>, ifaces: Vec<IfaceState>, coarse: Option<CoarseProblem>) -> Self {
@@ -67,7 +69,9 @@ impl InterfaceOperator {
             entry_inv_mult,
         }
     }
+}
 
+impl<C: Communicator> InterfaceOperator<C> {
     /// Entries of each interface.
     pub(crate) fn interface_sizes(&self) -> impl Iterator<Item = usize> + Clone + '_ {
         self.ifaces.iter().map(|it| it.lo_idx.len())
