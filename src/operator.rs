@@ -425,3 +425,192 @@ impl<C: Communicator> InterfaceOperator<C> {
         !self.ifaces.is_empty()
     }
 }
+
+#[cfg(test)]
+mod tests {
+    //! The seam is enough for a distributed backend: a communicator that
+    //! hands the operator copies of the neighbours' interface entries only
+    //! (everything else NaN, as in an MPI rank's ghost buffers) and sums in
+    //! its own loop gives the same bits as [`Threads`].
+    use super::*;
+    use crate::dd::{DdOptions, DdSolver};
+    use crate::generate::{grid, GridParams};
+    use crate::model::Model;
+    use crate::settings::{Preconditioner, SearchDirection};
+    use crate::solve::decompose;
+
+    struct Ghosts {
+        inner: Threads,
+        ends: Vec<(usize, usize)>,
+        iface_dofs: Vec<Vec<u32>>,
+    }
+
+    impl Communicator for Ghosts {
+        fn neighbour_traces<S, T, R, F>(&self, subs: &[S], trace: R, items: &mut [T], f: F)
+        where
+            S: Sync,
+            T: Send,
+            R: Fn(&S) -> &[f64] + Sync,
+            F: Fn(usize, &mut T, &[f64], &[f64]) + Sync,
+        {
+            // What a rank would receive: the interface entries of each side.
+            let ghost: Vec<Vec<f64>> = subs
+                .iter()
+                .zip(&self.iface_dofs)
+                .map(|(s, dofs)| {
+                    let v = trace(s);
+                    let mut g = vec![f64::NAN; v.len()];
+                    for &l in dofs {
+                        g[l as usize] = v[l as usize];
+                    }
+                    g
+                })
+                .collect();
+            for (i, t) in items.iter_mut().enumerate() {
+                let (lo, hi) = self.ends[i];
+                f(i, t, &ghost[lo], &ghost[hi]);
+            }
+        }
+
+        fn sum_interfaces<const N: usize>(&self, f: impl Fn(usize) -> [f64; N]) -> [f64; N] {
+            // Each part computed first, then reduced in interface order.
+            let parts: Vec<[f64; N]> = (0..self.ends.len()).map(f).collect();
+            let mut acc = [-0.0; N];
+            for p in parts {
+                for (a, x) in acc.iter_mut().zip(p) {
+                    *a += x;
+                }
+            }
+            acc
+        }
+
+        fn sum_subdomains<const N: usize>(&self, f: impl Fn(usize) -> [f64; N]) -> [f64; N] {
+            self.inner.sum_subdomains(f)
+        }
+
+        fn coarse_solve<'a>(
+            &self,
+            coarse: &mut CoarseProblem,
+            iface_part: impl Fn(usize) -> (usize, &'a [f64]),
+            sub_part: impl Fn(usize) -> (usize, &'a [f64]),
+        ) {
+            // A stale right-hand side must not survive the gather.
+            coarse.rhs.iter_mut().for_each(|x| *x = f64::NAN);
+            self.inner.coarse_solve(coarse, iface_part, sub_part);
+        }
+
+        fn assemble(&self, out: &mut [f64], add: impl Fn(usize, &mut [f64])) {
+            self.inner.assemble(out, add);
+        }
+    }
+
+    fn solver() -> DdSolver {
+        let scene = grid(&GridParams {
+            nx: 8,
+            ny: 6,
+            unilateral: false,
+            ..Default::default()
+        });
+        let model = Model::from_scene(&scene).unwrap();
+        let dec = decompose(&model, &scene, 6).unwrap();
+        let opts = DdOptions {
+            coarse: true,
+            tolerance: 1e-8,
+            max_iterations: 10,
+            search_direction: SearchDirection::Auto,
+            krylov: true,
+            preconditioner: Preconditioner::Dirichlet,
+        };
+        DdSolver::new(&model, &dec, opts).unwrap()
+    }
+
+    fn same(a: &[f64], b: &[f64]) -> bool {
+        a.len() == b.len() && a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits())
+    }
+
+    #[test]
+    fn ghost_buffers_give_the_same_bits_as_threads() {
+        let mut local = solver().op;
+        let InterfaceOperator {
+            subs,
+            ifaces,
+            coarse,
+            comm,
+            entry_inv_mult,
+        } = solver().op;
+        let ghosts = Ghosts {
+            ends: ifaces.iter().map(|it| (it.lo, it.hi)).collect(),
+            iface_dofs: subs.iter().map(|s| s.iface_dofs.clone()).collect(),
+            inner: comm,
+        };
+        let mut ghost = InterfaceOperator {
+            subs,
+            ifaces,
+            coarse,
+            comm: ghosts,
+            entry_inv_mult,
+        };
+        assert!(local.coarse.is_some() && local.ifaces.len() > 4);
+        let sizes: Vec<usize> = local.interface_sizes().collect();
+        let vec_of = |seed: usize| -> Vec<Vec<f64>> {
+            sizes
+                .iter()
+                .enumerate()
+                .map(|(i, &n)| {
+                    (0..n)
+                        .map(|j| ((i * 31 + j * 7 + seed) % 13) as f64 / 13.0 - 0.4)
+                        .collect()
+                })
+                .collect()
+        };
+        for (a, b) in local.subs.iter_mut().zip(ghost.subs.iter_mut()) {
+            for (l, (x, y)) in a.b.iter_mut().zip(b.b.iter_mut()).enumerate() {
+                *x = (l % 5) as f64 - 2.0;
+                *y = *x;
+            }
+        }
+        let forces = vec_of(1);
+        for load in [true, false] {
+            local.apply(&forces, false, load);
+            ghost.apply(&forces, false, load);
+            for (a, b) in local.ifaces.iter().zip(&ghost.ifaces) {
+                assert!(same(&a.jump, &b.jump));
+            }
+            for (a, b) in local.subs.iter().zip(&ghost.subs) {
+                assert!(same(&a.v, &b.v));
+            }
+            assert_eq!(local.jump_norms2(), ghost.jump_norms2());
+            assert_eq!(local.v_norm2().to_bits(), ghost.v_norm2().to_bits());
+        }
+        // The force stage and the preconditioner.
+        let (mut fa, mut fb) = (vec_of(2), vec_of(2));
+        local.force_stage(&mut fa, 0.3);
+        ghost.force_stage(&mut fb, 0.3);
+        assert!(fa.iter().zip(&fb).all(|(a, b)| same(a, b)));
+        let w: Vec<EntryWeights> = sizes
+            .iter()
+            .map(|&n| EntryWeights {
+                lo: vec![0.5; n],
+                hi: vec![0.5; n],
+            })
+            .collect();
+        let r = vec_of(3);
+        let (mut za, mut zb) = (vec_of(0), vec_of(0));
+        local.precondition(&r, &w, &mut za);
+        ghost.precondition(&r, &w, &mut zb);
+        assert!(za.iter().zip(&zb).all(|(a, b)| same(a, b)));
+        assert!(za.iter().flatten().all(|x| x.is_finite()) && za.iter().flatten().any(|&x| x != 0.0));
+        assert_eq!(local.dot(&r, &za).to_bits(), ghost.dot(&r, &zb).to_bits());
+        // Jumps of given displacements.
+        let v: Vec<Vec<f64>> = local
+            .subs
+            .iter()
+            .map(|s| s.v.iter().map(|x| 2.0 * x).collect())
+            .collect();
+        local.jumps(Some(&v));
+        ghost.jumps(Some(&v));
+        for (a, b) in local.ifaces.iter().zip(&ghost.ifaces) {
+            assert!(same(&a.jump, &b.jump));
+        }
+    }
+}
