@@ -10,10 +10,13 @@
 //!    `Pᵀ J y` (reusing the solve of step 2) and `Rᵀ r`, then
 //!    `V_E = y_E − Z_E f_E + R_E α_E`.
 //!
-//! Everything per subdomain runs in parallel with rayon; reductions are
-//! summed serially in subdomain order, so results do not depend on the
-//! number of threads. Scratch is allocated at set-up: the iteration loop
-//! does not allocate.
+//! This module is the set-up ([`DdSolver`]); the operations of an
+//! iteration are the interface operator's ([`crate::operator`]), and the
+//! ones that cross subdomains go through [`crate::comm`]. Everything per
+//! subdomain runs in parallel with rayon; reductions are summed serially
+//! in subdomain or interface order, so results do not depend on the number
+//! of threads. Scratch is allocated at set-up: the iteration loop does not
+//! allocate.
 
 use crate::coarse::{CoarseContribution, CoarseProblem, MacroBasis};
 use crate::decomposition::Decomposition;
