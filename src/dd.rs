@@ -10,18 +10,22 @@
 //!    `Pᵀ J y` (reusing the solve of step 2) and `Rᵀ r`, then
 //!    `V_E = y_E − Z_E f_E + R_E α_E`.
 //!
-//! Everything per subdomain runs in parallel with rayon; reductions are
-//! summed serially in subdomain order, so results do not depend on the
-//! number of threads. Scratch is allocated at set-up: the iteration loop
-//! does not allocate.
+//! This module is the set-up ([`DdSolver`]); the operations of an
+//! iteration are the interface operator's ([`crate::operator`]), and the
+//! ones that cross subdomains go through [`crate::comm`]. Everything per
+//! subdomain runs in parallel with rayon; reductions are summed serially
+//! in subdomain or interface order, so results do not depend on the number
+//! of threads. Scratch is allocated at set-up: the iteration loop does not
+//! allocate.
 
 use crate::coarse::{CoarseContribution, CoarseProblem, MacroBasis};
 use crate::decomposition::Decomposition;
 use crate::error::{Error, Result};
-use crate::kernels::{self, Run, Side};
+use crate::kernels::{self, Run};
 use crate::method::cg::CgWorkspace;
 pub use crate::method::stopping::{stalled, stopping_factor, CONTRACTION_CAP, CONTRACTION_WINDOW};
 use crate::model::{Model, FIXED};
+use crate::operator::InterfaceOperator;
 use crate::outcome::Outcome;
 use crate::scaling::InterfaceScaling;
 use crate::settings::{MethodConfig, Preconditioner, SearchDirection, SolverSettings};
@@ -93,7 +97,7 @@ pub const NO_DOF: u32 = u32::MAX;
 impl CableColumn {
     /// Elongation `h_cᵀ v`.
     #[inline]
-    fn elongation(&self, v: &[f64]) -> f64 {
+    pub(crate) fn elongation(&self, v: &[f64]) -> f64 {
         let mut x = 0.0;
         for (&i, &c) in self.dofs.iter().zip(&self.coef) {
             if i != NO_DOF {
@@ -105,7 +109,7 @@ impl CableColumn {
 
     /// `out += h_c · coef`.
     #[inline]
-    fn add_to(&self, coef: f64, out: &mut [f64]) {
+    pub(crate) fn add_to(&self, coef: f64, out: &mut [f64]) {
         for (&i, &c) in self.dofs.iter().zip(&self.coef) {
             if i != NO_DOF {
                 out[i as usize] += c * coef;
@@ -247,7 +251,6 @@ pub(crate) struct IfaceState {
     /// `lo_idx`, `hi_idx` as runs of consecutive local dofs: what the
     /// per-iteration kernels use (vectorised slice loops).
     pub(crate) runs: Vec<Run>,
-    pub(crate) force: Vec<f64>,
     pub(crate) jump: Vec<f64>,
     /// `P_Γ` (`entries × m_Γ`), empty without coarse space.
     pub(crate) p: Mat<f64>,
@@ -286,9 +289,12 @@ pub struct DdStats {
 /// The set-up DD solver: factorizations, macro space and coarse problem,
 /// reusable for any number of load cases.
 pub struct DdSolver {
-    pub(crate) subs: Vec<SubState>,
-    pub(crate) ifaces: Vec<IfaceState>,
-    coarse: Option<CoarseProblem>,
+    /// Subdomain operators, interfaces, coarse problem and the
+    /// communication seam: what the methods apply.
+    pub(crate) op: InterfaceOperator,
+    /// Interface forces `F` (per interface) of the last solve: where a
+    /// `warm` solve starts.
+    pub(crate) forces: Vec<Vec<f64>>,
     /// The set-up's step length (a solve never changes it).
     pub(crate) d: f64,
     pub(crate) opts: DdOptions,
@@ -399,7 +405,6 @@ impl DdSolver {
                     &dec.entry_lo_local[it.start..it.end],
                     &dec.entry_hi_local[it.start..it.end],
                 ),
-                force: vec![0.0; it.len()],
                 jump: vec![0.0; it.len()],
                 p: Mat::zeros(0, 0),
                 macro_off: 0,
@@ -602,10 +607,10 @@ impl DdSolver {
             },
             search_direction_s: 0.0,
         };
+        let forces = ifaces.iter().map(|it| vec![0.0; it.lo_idx.len()]).collect();
         let mut solver = DdSolver {
-            subs,
-            ifaces,
-            coarse,
+            op: InterfaceOperator::new(subs, ifaces, coarse),
+            forces,
             d: 0.0,
             opts,
             n_free,
@@ -616,13 +621,13 @@ impl DdSolver {
         };
         if solver.opts.krylov {
             solver.cg = Some(CgWorkspace::new(
-                solver.ifaces.iter().map(|it| it.force.len()),
-                solver.subs.iter().map(|s| s.v.len()),
+                solver.op.interface_sizes(),
+                solver.op.subs.iter().map(|s| s.v.len()),
             ));
             solver.set_interface_scaling(InterfaceScaling::default());
             if solver.opts.preconditioner == Preconditioner::Dirichlet {
                 let t = Instant::now();
-                solver.subs.par_iter_mut().try_for_each(|st| -> Result<()> {
+                solver.op.subs.par_iter_mut().try_for_each(|st| -> Result<()> {
                     st.interior = Some(InteriorProblem::new(&st.op, &st.iface_dofs)?);
                     Ok(())
                 })?;
@@ -650,7 +655,7 @@ impl DdSolver {
         let reps = reps.max(1);
         let t = Instant::now();
         for _ in 0..reps {
-            self.subs.par_iter_mut().for_each(|s| {
+            self.op.subs.par_iter_mut().for_each(|s| {
                 s.y.copy_from_slice(&s.b);
                 s.op.solve_in_place(&mut s.y);
             });
@@ -667,14 +672,14 @@ impl DdSolver {
     /// The interface forces of the last solve, interfaces one after the
     /// other (the layout of the decomposition's interface vector).
     pub fn interface_forces(&self) -> Vec<f64> {
-        self.ifaces.iter().flat_map(|it| it.force.iter().copied()).collect()
+        self.forces.iter().flat_map(|f| f.iter().copied()).collect()
     }
 
     /// Sets the interface forces a `warm` solve starts from: another
     /// solver's [`Self::interface_forces`] on the same decomposition (the
     /// nonsmooth CG warm-starts each active-set step from the last one).
     pub fn set_interface_forces(&mut self, forces: &[f64]) -> Result<()> {
-        let n: usize = self.ifaces.iter().map(|it| it.force.len()).sum();
+        let n: usize = self.forces.iter().map(|f| f.len()).sum();
         if forces.len() != n {
             return Err(Error::input(
                 "interface forces",
@@ -683,9 +688,9 @@ impl DdSolver {
             ));
         }
         let mut off = 0;
-        for it in self.ifaces.iter_mut() {
-            let m = it.force.len();
-            it.force.copy_from_slice(&forces[off..off + m]);
+        for f in self.forces.iter_mut() {
+            let m = f.len();
+            f.copy_from_slice(&forces[off..off + m]);
             off += m;
         }
         Ok(())
@@ -703,50 +708,50 @@ impl DdSolver {
 
     /// The macro basis `P_Γ` of each interface (empty without coarse step).
     pub fn macro_blocks(&self) -> Vec<&Mat<f64>> {
-        self.ifaces.iter().map(|i| &i.p).collect()
+        self.op.ifaces.iter().map(|i| &i.p).collect()
     }
 
     /// The assembled coarse operator `L` (macro block of the saddle system),
     /// as a dense matrix: for tests on small cases.
     pub fn coarse_operator(&self) -> Option<Mat<f64>> {
-        self.coarse.as_ref().map(|c| c.operator())
+        self.op.coarse.as_ref().map(|c| c.operator())
     }
 
     /// Worst relative residual of the coarse solves since set-up
     /// ([`CoarseProblem::worst_residual`]), if there is a coarse step.
     pub fn coarse_residual(&self) -> Option<f64> {
-        self.coarse.as_ref().map(|c| c.worst_residual())
+        self.op.coarse.as_ref().map(|c| c.worst_residual())
     }
 
     /// The factored coarse problem (multilevel only), e.g. to time its solve.
     pub fn coarse_problem_mut(&mut self) -> Option<&mut CoarseProblem> {
-        self.coarse.as_mut()
+        self.op.coarse.as_mut()
     }
 
     /// The factored operator of subdomain `s`.
     pub fn operator(&self, s: usize) -> &SubdomainOperator {
-        &self.subs[s].op
+        &self.op.subs[s].op
     }
 
     /// Mutable access to the operator of subdomain `s` (for solves in tests
     /// and tools; the iteration does not depend on its scratch state).
     pub fn operator_mut(&mut self, s: usize) -> &mut SubdomainOperator {
-        &mut self.subs[s].op
+        &mut self.op.subs[s].op
     }
 
     /// Number of subdomains.
     pub fn n_subdomains(&self) -> usize {
-        self.subs.len()
+        self.op.subs.len()
     }
 
     /// Whether this solver runs a coarse step.
     pub fn has_coarse(&self) -> bool {
-        self.coarse.is_some()
+        self.op.coarse.is_some()
     }
 
     /// Whether any interface exists (more than one subdomain).
     pub fn has_interfaces(&self) -> bool {
-        !self.ifaces.is_empty()
+        !self.op.ifaces.is_empty()
     }
 
     /// Whether any subdomain needed a generalised inverse.
@@ -764,39 +769,38 @@ impl DdSolver {
     /// of the stability limit; `λ_max` comes from a power iteration on the
     /// same kernels as the solve.
     fn auto_search_direction(&mut self) -> Result<f64> {
-        if self.ifaces.is_empty() {
+        if self.op.ifaces.is_empty() {
             return Ok(1.0);
         }
-        for s in self.subs.iter_mut() {
+        for s in self.op.subs.iter_mut() {
             s.b.iter_mut().for_each(|v| *v = 0.0);
             s.lambda.iter_mut().for_each(|v| *v = 0.0);
         }
         // Deterministic, non-degenerate start vector.
-        for it in self.ifaces.iter_mut() {
-            for (j, f) in it.force.iter_mut().enumerate() {
+        for (force, it) in self.forces.iter_mut().zip(&self.op.ifaces) {
+            for (j, f) in force.iter_mut().enumerate() {
                 *f = 1.0 + ((j * 7 + it.lo * 3 + it.hi) % 11) as f64 / 11.0;
             }
         }
         let mut lambda_max = 0.0;
         for _ in 0..POWER_ITERATIONS {
-            let norm = self.ifaces.iter().map(|i| kernels::norm2(&i.force)).sum::<f64>().sqrt();
+            let norm = self.op.norm2(&self.forces).sqrt();
             if !(norm > 0.0) {
                 break;
             }
-            for it in self.ifaces.iter_mut() {
-                it.force.iter_mut().for_each(|f| *f /= norm);
+            for force in self.forces.iter_mut() {
+                force.iter_mut().for_each(|f| *f /= norm);
             }
-            self.global_step(false);
-            self.compute_jumps();
+            self.op.apply(&self.forces, false, true);
             // T x = −M J V(x): the force increment for d = −1, from zero.
-            for it in self.ifaces.iter_mut() {
-                it.force.iter_mut().for_each(|f| *f = 0.0);
+            for force in self.forces.iter_mut() {
+                force.iter_mut().for_each(|f| *f = 0.0);
             }
-            self.force_stage(-1.0);
-            lambda_max = self.ifaces.iter().map(|i| kernels::norm2(&i.force)).sum::<f64>().sqrt();
+            self.op.force_stage(&mut self.forces, -1.0);
+            lambda_max = self.op.norm2(&self.forces).sqrt();
         }
-        for it in self.ifaces.iter_mut() {
-            it.force.iter_mut().for_each(|f| *f = 0.0);
+        for force in self.forces.iter_mut() {
+            force.iter_mut().for_each(|f| *f = 0.0);
         }
         if !lambda_max.is_finite() {
             return Err(Error::Numerical(
@@ -833,7 +837,8 @@ impl DdSolver {
             ));
         }
         let subs_dofs = &self.dof_maps;
-        self.subs
+        self.op
+            .subs
             .par_iter_mut()
             .zip(subs_dofs.par_iter())
             .for_each(|(s, dofs)| {
@@ -852,14 +857,14 @@ impl DdSolver {
         warm: bool,
         progress: Option<&mut dyn FnMut(usize, f64)>,
     ) -> Result<DdOutcome> {
-        if rhs.len() != self.subs.len() {
+        if rhs.len() != self.op.subs.len() {
             return Err(Error::input(
                 "rhs",
                 None,
-                format!("{} subdomain vectors given, expected {}", rhs.len(), self.subs.len()),
+                format!("{} subdomain vectors given, expected {}", rhs.len(), self.op.subs.len()),
             ));
         }
-        for (i, (s, r)) in self.subs.iter().zip(rhs).enumerate() {
+        for (i, (s, r)) in self.op.subs.iter().zip(rhs).enumerate() {
             if r.len() != s.b.len() {
                 return Err(Error::input(
                     "rhs",
@@ -868,7 +873,7 @@ impl DdSolver {
                 ));
             }
         }
-        self.subs.par_iter_mut().zip(rhs.par_iter()).for_each(|(s, r)| {
+        self.op.subs.par_iter_mut().zip(rhs.par_iter()).for_each(|(s, r)| {
             for ((b, &x), &p) in s.b.iter_mut().zip(r.iter()).zip(&s.prestrain) {
                 *b = x + p;
             }
@@ -885,103 +890,11 @@ impl DdSolver {
         }
     }
 
-    /// `r = b − C Bᵀ F − H k λ`, `y = K⁺ r`, coarse step, `V = y − Z f + R α`.
-    pub(crate) fn global_step(&mut self, with_cables: bool) {
-        self.global_step_with(None, with_cables, true);
-    }
-
-    /// The global step; without `load`, for the interface forces alone
-    /// (`b = 0`: the homogeneous problem of the CG operator). `forces`
-    /// (per interface) replaces the interfaces' own forces when given: the
-    /// operator applied to another interface vector (CG's direction).
-    pub(crate) fn global_step_with(&mut self, forces: Option<&[Vec<f64>]>, with_cables: bool, load: bool) {
-        let ifaces = &self.ifaces;
-        self.subs.par_iter_mut().for_each(|s| {
-            if load {
-                s.r.copy_from_slice(&s.b);
-            } else {
-                s.r.iter_mut().for_each(|v| *v = 0.0);
-            }
-            for &(i, is_lo) in &s.ifaces {
-                let it = &ifaces[i];
-                let (side, coef) = if is_lo { (Side::Lo, -1.0) } else { (Side::Hi, 1.0) };
-                let f = forces.map_or(&it.force, |f| &f[i]);
-                kernels::scatter_add_runs(&mut s.r, side, &it.runs, f, coef);
-            }
-            if with_cables {
-                for (c, &lam) in s.cables.iter().zip(&s.lambda) {
-                    if lam != 0.0 {
-                        c.add_to(-c.k * lam, &mut s.r);
-                    }
-                }
-            }
-            s.y.copy_from_slice(&s.r);
-            s.op.solve_in_place(&mut s.y);
-        });
-        if let Some(coarse) = self.coarse.as_mut() {
-            let subs = &self.subs;
-            self.ifaces.par_iter_mut().for_each(|it| {
-                kernels::jump_runs(&mut it.jump, &subs[it.lo].y, &subs[it.hi].y, &it.runs);
-                let m = it.p.ncols();
-                for q in 0..m {
-                    let col = it.p.col(q);
-                    it.pt[q] = col.iter().zip(&it.jump).map(|(a, b)| a * b).sum();
-                }
-            });
-            for it in &self.ifaces {
-                coarse.rhs[it.macro_off..it.macro_off + it.pt.len()].copy_from_slice(&it.pt);
-            }
-            self.subs.par_iter_mut().for_each(|s| {
-                let r = s.op.kernel();
-                for q in 0..r.ncols() {
-                    s.rt_r[q] = r.col(q).iter().zip(&s.r).map(|(a, b)| a * b).sum();
-                }
-            });
-            let nf = coarse.n_macro;
-            for s in &self.subs {
-                coarse.rhs[nf + s.alpha_off..nf + s.alpha_off + s.rt_r.len()].copy_from_slice(&s.rt_r);
-            }
-            coarse.solve();
-            let coarse = &*coarse;
-            self.subs.par_iter_mut().for_each(|s| {
-                let f = coarse.macro_forces();
-                for (k, &c) in s.macro_cols.iter().enumerate() {
-                    s.fm[k] = f[c];
-                }
-                let na = s.alpha.len();
-                s.alpha
-                    .copy_from_slice(&coarse.kernel_amplitudes()[s.alpha_off..s.alpha_off + na]);
-                s.v.copy_from_slice(&s.y);
-                for (k, &fk) in s.fm.iter().enumerate() {
-                    if fk != 0.0 {
-                        for (v, z) in s.v.iter_mut().zip(s.z.col(k).iter()) {
-                            *v -= z * fk;
-                        }
-                    }
-                }
-                let r = s.op.kernel();
-                for (q, &a) in s.alpha.iter().enumerate() {
-                    for (v, rq) in s.v.iter_mut().zip(r.col(q).iter()) {
-                        *v += rq * a;
-                    }
-                }
-                s.v_norm2 = kernels::norm2(&s.v);
-            });
-        } else {
-            self.subs.par_iter_mut().for_each(|s| {
-                s.v.copy_from_slice(&s.y);
-                s.v_norm2 = kernels::norm2(&s.v);
-            });
-        }
-    }
-
     /// Zero interface forces and cable slacks: a cold start.
     pub(crate) fn reset_unknowns(&mut self) {
-        for s in self.subs.iter_mut() {
-            s.lambda.iter_mut().for_each(|v| *v = 0.0);
-        }
-        for it in self.ifaces.iter_mut() {
-            it.force.iter_mut().for_each(|f| *f = 0.0);
+        self.op.reset_slacks();
+        for force in self.forces.iter_mut() {
+            force.iter_mut().for_each(|f| *f = 0.0);
         }
     }
 
@@ -993,85 +906,17 @@ impl DdSolver {
     /// load alone the indicator stalled at 3e-4 on its round-off floor while
     /// the true error was 1e-8 (300 × 300 grid, 64 subdomains).
     pub(crate) fn force_scale(&self, b_norm: f64) -> f64 {
-        let f2: f64 = self.ifaces.iter().map(|it| kernels::norm2(&it.force)).sum();
+        let f2 = self.op.norm2(&self.forces);
         b_norm.max(f2.sqrt()).max(f64::MIN_POSITIVE)
     }
 
     /// Norm of the assembled right-hand side (loads and prestrain).
     pub(crate) fn load_norm(&self) -> f64 {
-        let mut b_global = vec![0.0; self.n_free];
-        for (s, dofs) in self.subs.iter().zip(&self.dof_maps) {
-            for (l, &d) in dofs.iter().enumerate() {
-                b_global[d] += s.b[l];
-            }
-        }
-        kernels::norm2(&b_global).sqrt()
-    }
-
-    /// `jump = J V` on every interface.
-    pub(crate) fn compute_jumps(&mut self) {
-        self.compute_jumps_of(None);
-    }
-
-    /// `jump = J V` with `V` the subdomains' own `v`, or `v` when given
-    /// (per subdomain: CG's iterate).
-    pub(crate) fn compute_jumps_of(&mut self, v: Option<&[Vec<f64>]>) {
-        let subs = &self.subs;
-        self.ifaces.par_iter_mut().for_each(|it| {
-            let (lo, hi) = match v {
-                Some(v) => (&v[it.lo], &v[it.hi]),
-                None => (&subs[it.lo].v, &subs[it.hi].v),
-            };
-            kernels::jump_runs(&mut it.jump, lo, hi, &it.runs);
-            it.jump_norm2 = kernels::norm2(&it.jump);
-            it.force_norm2 = it.jump.iter().zip(&it.stiffness).map(|(j, k)| (j * k) * (j * k)).sum();
-        });
-    }
-
-    /// `F += d Σ_E B_Eᵀ D_E B_E jump` (cross points couple their pair
-    /// entries); `D_E` is the identity for a scalar `d` and `diag(K_E)` for
-    /// the lumped search direction (the paper's "lumped" `X^D`).
-    pub(crate) fn force_stage(&mut self, d: f64) {
-        let ifaces = &self.ifaces;
-        self.subs.par_iter_mut().for_each(|s| {
-            for &(i, is_lo) in &s.ifaces {
-                let it = &ifaces[i];
-                let (side, coef) = if is_lo { (Side::Lo, 1.0) } else { (Side::Hi, -1.0) };
-                kernels::scatter_add_runs(&mut s.g, side, &it.runs, &it.jump, coef);
-            }
-            for &l in &s.iface_dofs {
-                s.g[l as usize] *= s.weight[l as usize];
-            }
-        });
-        let subs = &self.subs;
-        self.ifaces.par_iter_mut().for_each(|it| {
-            kernels::force_update_runs(&mut it.force, d, &subs[it.lo].g, &subs[it.hi].g, &it.runs);
-        });
-        self.subs.par_iter_mut().for_each(|s| {
-            for &l in &s.iface_dofs {
-                s.g[l as usize] = 0.0;
-            }
-        });
+        self.op.load_norm(&self.dof_maps, self.n_free)
     }
 
     /// Global displacement (average of the subdomain copies) and slacks.
     pub(crate) fn assemble(&self) -> (Vec<f64>, Vec<f64>) {
-        let mut u = vec![0.0; self.n_free];
-        let mut lambda = vec![0.0; self.n_cables];
-        for (s, dofs) in self.subs.iter().zip(&self.dof_maps) {
-            for (l, &d) in dofs.iter().enumerate() {
-                u[d] += s.v[l] * s.inv_mult[l];
-            }
-            for (c, &lam) in s.cables.iter().zip(&s.lambda) {
-                lambda[c.cable] = lam;
-            }
-        }
-        (u, lambda)
-    }
-}
-
-pub(crate) fn cable_elongations(s: &mut SubState) {
-    for (c, e) in s.cables.iter().zip(s.elong.iter_mut()) {
-        *e = c.elongation(&s.v);
+        self.op.assemble(&self.dof_maps, self.n_free, self.n_cables)
     }
 }

@@ -6,7 +6,6 @@
 use crate::cg_stopping::{self, CgStopping};
 use crate::dd::DdSolver;
 use crate::error::Result;
-use crate::kernels::{self, Side};
 use crate::method::stopping::{ending, stalled};
 use crate::outcome::{Outcome, Status};
 use crate::result::HistoryEntry;
@@ -57,14 +56,6 @@ impl CgWorkspace {
     }
 }
 
-/// `Σ_Γ ⟨x_Γ, y_Γ⟩` over the interfaces, summed in interface order.
-fn iface_dot<'a>(x: &[Vec<f64>], y: impl Iterator<Item = &'a Vec<f64>>) -> f64 {
-    x.iter()
-        .zip(y)
-        .map(|(x, y)| x.iter().zip(y).map(|(a, b)| a * b).sum::<f64>())
-        .sum()
-}
-
 impl DdSolver {
     /// Conjugate gradient on the interface problem (docs/design.md §6, the
     /// paper's outlook), linear case. With `S(F) = F + P f(F)` the forces
@@ -72,7 +63,7 @@ impl DdSolver {
     /// `⟨F₂, A F₁⟩ = S₂ᵀ 𝔽 S₁` (`𝔽 = Σ B K⁺ Bᵀ`, `Gᵀ S = 0`), so it is
     /// symmetric positive semi-definite and CG applies; the preconditioner
     /// is `Σ_E B_E S_E B_Eᵀ` (Dirichlet) or `Σ_E B_E K_E B_Eᵀ` (lumped), see
-    /// [`Self::precondition`]. One homogeneous global step (one solve per
+    /// [`crate::operator::InterfaceOperator::precondition`]. One homogeneous global step (one solve per
     /// subdomain and one coarse solve) per iteration, plus one interior
     /// solve per subdomain with the Dirichlet choice; the displacement is updated by linearity, so
     /// no solve is added at the end. No allocation per iteration.
@@ -98,7 +89,7 @@ impl DdSolver {
         let b_norm = self.load_norm().max(f64::MIN_POSITIVE);
         let mut history = Vec::with_capacity(self.opts.max_iterations.min(100_000));
         let mut rz = self.cg_start(ws);
-        let mut converged = self.ifaces.is_empty() || self.cg_indicator(ws, b_norm) == 0.0;
+        let mut converged = !self.op.has_interfaces() || self.cg_indicator(ws, b_norm) == 0.0;
         if converged {
             history.push(HistoryEntry {
                 iteration: 0,
@@ -117,9 +108,8 @@ impl DdSolver {
             iterations += 1;
             // q = A p = −J V_hom(p): the homogeneous global step with F = p
             // (V_hom(p) is left in the subdomains' `v`, `jump` = J V_hom(p)).
-            self.global_step_with(Some(&ws.p), false, false);
-            self.compute_jumps_of(None);
-            let pq = -iface_dot(&ws.p, self.ifaces.iter().map(|it| &it.jump));
+            self.op.apply(&ws.p, false, false);
+            let pq = -self.op.dot_jump(&ws.p);
             if !(pq > 0.0) || !rz.is_finite() {
                 // The operator is positive semi-definite by construction
                 // (indefinite subdomains are refused at set-up), so pᵀAp ≤ 0
@@ -152,16 +142,17 @@ impl DdSolver {
             let a = rz / pq;
             energy_terms.push(a * rz);
             // F += a p, r −= a q (q = −jump), V += a V_hom.
-            self.ifaces
+            self.forces
                 .par_iter_mut()
+                .zip(self.op.ifaces.par_iter())
                 .zip(ws.r.par_iter_mut().zip(ws.p.par_iter()))
-                .for_each(|(it, (cr, cp))| {
-                    for ((f, r), (&p, &j)) in it.force.iter_mut().zip(cr.iter_mut()).zip(cp.iter().zip(&it.jump)) {
+                .for_each(|((force, it), (cr, cp))| {
+                    for ((f, r), (&p, &j)) in force.iter_mut().zip(cr.iter_mut()).zip(cp.iter().zip(&it.jump)) {
                         *f += a * p;
                         *r += a * j;
                     }
                 });
-            ws.v.par_iter_mut().zip(self.subs.par_iter()).for_each(|(cv, s)| {
+            ws.v.par_iter_mut().zip(self.op.subs.par_iter()).for_each(|(cv, s)| {
                 for (v, &h) in cv.iter_mut().zip(&s.v) {
                     *v += a * h;
                 }
@@ -220,8 +211,8 @@ impl DdSolver {
                 continue;
             }
             best = best.min(indicator);
-            self.precondition(ws);
-            let rz_new = iface_dot(&ws.r, ws.z.iter());
+            self.op.precondition(&ws.r, &ws.w, &mut ws.z);
+            let rz_new = self.op.dot(&ws.r, &ws.z);
             let beta = rz_new / rz;
             rz = rz_new;
             ws.p.par_iter_mut().zip(ws.z.par_iter()).for_each(|(cp, cz)| {
@@ -230,7 +221,7 @@ impl DdSolver {
                 }
             });
         }
-        for (s, cv) in self.subs.iter_mut().zip(&ws.v) {
+        for (s, cv) in self.op.subs.iter_mut().zip(&ws.v) {
             s.v.copy_from_slice(cv);
         }
         let (u, lambda) = self.assemble();
@@ -252,17 +243,15 @@ impl DdSolver {
     #[doc(hidden)]
     pub fn apply_interface_operator(&mut self, p: &[f64], out: &mut [f64]) {
         let mut off = 0;
-        let mut forces = Vec::with_capacity(self.ifaces.len());
-        for it in &self.ifaces {
-            let n = it.force.len();
+        let mut forces = Vec::with_capacity(self.forces.len());
+        for n in self.op.interface_sizes() {
             forces.push(p[off..off + n].to_vec());
             off += n;
         }
-        self.global_step_with(Some(&forces), false, false);
-        self.compute_jumps_of(None);
+        self.op.apply(&forces, false, false);
         let mut off = 0;
-        for it in &self.ifaces {
-            let n = it.force.len();
+        for it in &self.op.ifaces {
+            let n = it.jump.len();
             for (o, j) in out[off..off + n].iter_mut().zip(&it.jump) {
                 *o = -j;
             }
@@ -273,30 +262,30 @@ impl DdSolver {
     /// (Re)starts CG from the current forces: `V = V(F)` by a global step,
     /// `r = J V`, `z = M r`, `p = z`. Returns `⟨r, z⟩`.
     fn cg_start(&mut self, ws: &mut CgWorkspace) -> f64 {
-        self.global_step(false);
-        self.compute_jumps_of(None);
-        for (cv, s) in ws.v.iter_mut().zip(&self.subs) {
+        self.op.apply(&self.forces, false, true);
+        for (cv, s) in ws.v.iter_mut().zip(&self.op.subs) {
             cv.copy_from_slice(&s.v);
         }
-        for (cr, it) in ws.r.iter_mut().zip(&self.ifaces) {
+        for (cr, it) in ws.r.iter_mut().zip(&self.op.ifaces) {
             cr.copy_from_slice(&it.jump);
         }
-        self.precondition(ws);
+        self.op.precondition(&ws.r, &ws.w, &mut ws.z);
         for (cp, cz) in ws.p.iter_mut().zip(&ws.z) {
             cp.copy_from_slice(cz);
         }
-        iface_dot(&ws.r, ws.z.iter())
+        self.op.dot(&ws.r, &ws.z)
     }
 
     /// The indicator of the CG iterate (`ws.v`): the true jump `J V`, as a
     /// length and as a force (see the stationary iteration). Leaves `jump`
     /// = `J V`.
     fn cg_indicator(&mut self, ws: &CgWorkspace, b_norm: f64) -> f64 {
-        self.compute_jumps_of(Some(&ws.v));
-        let v2: f64 = ws.v.iter().map(|v| kernels::norm2(v)).sum();
+        self.op.jumps(Some(&ws.v));
+        let v2 = self.op.norm2_subdomains(&ws.v);
         let vn = v2.sqrt().max(f64::MIN_POSITIVE);
-        let jump = self.ifaces.iter().map(|i| i.jump_norm2).sum::<f64>().sqrt() / vn;
-        let force = self.ifaces.iter().map(|i| i.force_norm2).sum::<f64>().sqrt() / self.force_scale(b_norm);
+        let (jump2, force2) = self.op.jump_norms2();
+        let jump = jump2.sqrt() / vn;
+        let force = force2.sqrt() / self.force_scale(b_norm);
         if v2.is_finite() {
             jump.max(force)
         } else {
@@ -313,6 +302,7 @@ impl DdSolver {
             return;
         };
         let entries: Vec<scaling::InterfaceEntries<'_>> = self
+            .op
             .ifaces
             .iter()
             .map(|it| scaling::InterfaceEntries {
@@ -323,13 +313,14 @@ impl DdSolver {
             })
             .collect();
         let mult: Vec<Vec<u32>> = self
+            .op
             .subs
             .iter()
             .map(|s| s.inv_mult.iter().map(|&w| (1.0 / w).round() as u32).collect())
             .collect();
         let diag: Vec<Vec<f64>> = match kind {
             InterfaceScaling::Stiffness | InterfaceScaling::Contrast => {
-                self.subs.iter().map(|s| s.op.diagonal()).collect()
+                self.op.subs.iter().map(|s| s.op.diagonal()).collect()
             }
             _ => Vec::new(),
         };
@@ -344,100 +335,6 @@ impl DdSolver {
     /// v_E`, the work of the loads (`‖u*‖_K²` at convergence). One product
     /// with `K_E` per subdomain; no allocation.
     fn cg_energies(&mut self, ws: &mut CgWorkspace) -> (f64, f64) {
-        let ifaces = &self.ifaces;
-        self.subs
-            .par_iter_mut()
-            .zip(ws.v.par_iter().zip(ws.energy.par_iter_mut()))
-            .for_each(|(s, (cv, energy))| {
-                for &(i, is_lo) in &s.ifaces {
-                    let it = &ifaces[i];
-                    let (side, coef) = if is_lo { (Side::Lo, -1.0) } else { (Side::Hi, 1.0) };
-                    kernels::scatter_add_runs(&mut s.g, side, &it.runs, &it.jump, coef);
-                }
-                for &l in &s.iface_dofs {
-                    s.g[l as usize] *= s.inv_mult[l as usize];
-                }
-                s.op.apply(&s.g, &mut s.r);
-                let j: f64 = s.iface_dofs.iter().map(|&l| s.g[l as usize] * s.r[l as usize]).sum();
-                for &l in &s.iface_dofs {
-                    s.g[l as usize] = 0.0;
-                }
-                let e: f64 = s.b.iter().zip(cv).map(|(b, v)| b * v).sum();
-                *energy = (j, e);
-            });
-        // Summed serially in subdomain order (thread-count independent).
-        ws.energy.iter().fold((0.0, 0.0), |(a, b), &(j, e)| (a + j, b + e))
-    }
-
-    /// `z = (I − P Pᵀ) Σ_E B_D,E S_E B_D,Eᵀ r` (`B_D` the jump operator
-    /// scaled by the workspace's weights, [`crate::scaling`]) with `S_E` the Schur complement
-    /// of the subdomain on its interface (Dirichlet: the interface force
-    /// that holds the displacement `Bᵀr` with the interior free), or `K_E`
-    /// itself on the interface dofs (lumped: interior held at zero), then
-    /// the macro part removed. `range(P)` is in the null space of the CG operator (the
-    /// coarse step absorbs it); leaving it in `z` lets round-off grow there
-    /// and break the iteration on long runs.
-    fn precondition(&mut self, ws: &mut CgWorkspace) {
-        let ifaces = &self.ifaces;
-        let (cr, cw) = (&ws.r, &ws.w);
-        self.subs.par_iter_mut().for_each(|s| {
-            for &(i, is_lo) in &s.ifaces {
-                let it = &ifaces[i];
-                let (side, coef, w) = if is_lo {
-                    (Side::Lo, 1.0, &cw[i].lo)
-                } else {
-                    (Side::Hi, -1.0, &cw[i].hi)
-                };
-                scaling::scatter_add_scaled_runs(&mut s.g, side, &it.runs, &cr[i], w, coef);
-            }
-            // s.r is free between global steps: K_E B_Eᵀ r (lumped) or
-            // S_E B_Eᵀ r (Dirichlet) goes there.
-            match s.interior.as_mut() {
-                Some(ip) => ip.apply_schur(&s.op, &mut s.g, &mut s.r),
-                None => s.op.apply(&s.g, &mut s.r),
-            }
-            for &l in &s.iface_dofs {
-                s.g[l as usize] = 0.0;
-            }
-        });
-        let subs = &self.subs;
-        self.ifaces
-            .par_iter()
-            .zip(ws.z.par_iter_mut().zip(ws.w.par_iter()))
-            .for_each(|(it, (cz, w))| {
-                scaling::scaled_jump_runs(cz, &subs[it.lo].r, &w.lo, &subs[it.hi].r, &w.hi, &it.runs);
-            });
-        // Circulations of the redundant pair forces at cross points (zero
-        // net force on every subdomain) are null directions too: project z
-        // onto the differences of subdomain forces, `z ← (B_lo z − B_hi z)/m`
-        // per dof of multiplicity m (the identity where m = 2).
-        let ifaces = &self.ifaces;
-        let cz = &ws.z;
-        self.subs.par_iter_mut().for_each(|s| {
-            for &(i, is_lo) in &s.ifaces {
-                let it = &ifaces[i];
-                let (side, coef) = if is_lo { (Side::Lo, 1.0) } else { (Side::Hi, -1.0) };
-                kernels::scatter_add_runs(&mut s.g, side, &it.runs, &cz[i], coef);
-            }
-        });
-        let subs = &self.subs;
-        self.ifaces.par_iter().zip(ws.z.par_iter_mut()).for_each(|(it, cz)| {
-            let (lo, hi) = (&subs[it.lo], &subs[it.hi]);
-            for ((z, &a), &b) in cz.iter_mut().zip(&it.lo_idx).zip(&it.hi_idx) {
-                *z = (lo.g[a as usize] - hi.g[b as usize]) * lo.inv_mult[a as usize];
-            }
-            for q in 0..it.p.ncols() {
-                let col = it.p.col(q);
-                let c: f64 = col.iter().zip(cz.iter()).map(|(a, b)| a * b).sum();
-                for (z, a) in cz.iter_mut().zip(col.iter()) {
-                    *z -= c * a;
-                }
-            }
-        });
-        self.subs.par_iter_mut().for_each(|s| {
-            for &l in &s.iface_dofs {
-                s.g[l as usize] = 0.0;
-            }
-        });
+        self.op.jump_energies(&ws.v, &mut ws.energy)
     }
 }

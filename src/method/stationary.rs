@@ -4,14 +4,12 @@
 //! automatic `d` when the iteration blows up; that `d` stays local to the
 //! solve.
 
-use crate::dd::{cable_elongations, DdSolver};
+use crate::dd::DdSolver;
 use crate::error::Result;
-use crate::kernels;
 use crate::method::stopping::{ending, stalled, stopping_factor, DIVERGENCE_GROWTH};
 use crate::outcome::{Outcome, Status};
 use crate::result::HistoryEntry;
 use crate::settings::SearchDirection;
-use rayon::prelude::*;
 use std::time::Instant;
 
 /// Restarts with a halved automatic `d` before divergence is reported.
@@ -32,8 +30,7 @@ impl DdSolver {
         let has_cables = self.n_cables > 0;
         let b_norm = self.load_norm();
         let mut history = Vec::with_capacity(self.opts.max_iterations.min(100_000));
-        self.global_step(has_cables);
-        self.compute_jumps();
+        self.op.apply(&self.forces, has_cables, true);
         let mut best = f64::INFINITY;
         let mut converged = false;
         let mut iterations = 0;
@@ -46,7 +43,7 @@ impl DdSolver {
         // Iteration count at the last restart (history entries after it count).
         let mut restart_at = 0;
         // One subdomain without cables: the first global step is exact.
-        if self.ifaces.is_empty() && !has_cables {
+        if !self.op.has_interfaces() && !has_cables {
             converged = true;
             history.push(HistoryEntry {
                 iteration: 0,
@@ -59,25 +56,23 @@ impl DdSolver {
         while !converged && iterations < self.opts.max_iterations {
             iterations += 1;
             // Local stage.
-            self.force_stage(d);
+            self.op.force_stage(&mut self.forces, d);
             if has_cables {
-                self.subs.par_iter_mut().for_each(|s| {
-                    cable_elongations(s);
-                    (s.dlambda2, s.dforce2) = kernels::cable_projection(&mut s.lambda, &s.elong, &s.e0, &s.kc);
-                });
+                self.op.cable_stage();
             }
             // Global step and coarse step.
-            self.global_step(has_cables);
-            self.compute_jumps();
-            let v2: f64 = self.subs.iter().map(|s| s.v_norm2).sum();
+            self.op.apply(&self.forces, has_cables, true);
+            let v2 = self.op.v_norm2();
             let vn = v2.sqrt().max(f64::MIN_POSITIVE);
-            let jump = self.ifaces.iter().map(|i| i.jump_norm2).sum::<f64>().sqrt() / vn;
+            let (jump2, force2) = self.op.jump_norms2();
+            let jump = jump2.sqrt() / vn;
             let force_scale = self.force_scale(b_norm);
-            let force = self.ifaces.iter().map(|i| i.force_norm2).sum::<f64>().sqrt() / force_scale;
+            let force = force2.sqrt() / force_scale;
             let jump = jump.max(force);
             let cable = if has_cables {
-                let length = self.subs.iter().map(|s| s.dlambda2).sum::<f64>().sqrt() / vn;
-                let force = self.subs.iter().map(|s| s.dforce2).sum::<f64>().sqrt() / force_scale;
+                let (dlambda2, dforce2) = self.op.cable_change2();
+                let length = dlambda2.sqrt() / vn;
+                let force = dforce2.sqrt() / force_scale;
                 Some(length.max(force))
             } else {
                 None
@@ -87,7 +82,7 @@ impl DdSolver {
                 iteration: iterations,
                 time_s: t0.elapsed().as_secs_f64(),
                 indicator,
-                jump: if self.ifaces.is_empty() { None } else { Some(jump) },
+                jump: if self.op.has_interfaces() { Some(jump) } else { None },
                 cable_change: cable,
             });
             if let Some(p) = progress.as_mut() {
@@ -102,8 +97,7 @@ impl DdSolver {
                 restarts += 1;
                 d *= 0.5;
                 self.reset_unknowns();
-                self.global_step(has_cables);
-                self.compute_jumps();
+                self.op.apply(&self.forces, has_cables, true);
                 best = f64::INFINITY;
                 restart_at = iterations;
                 continue;

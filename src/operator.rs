@@ -1,0 +1,616 @@
+//! The interface operator as a value (docs/design.md §5–6, §8): the
+//! subdomain operators with their scratch, the interfaces with their macro
+//! bases, the coarse problem and the communication seam ([`crate::comm`]).
+//!
+//! What it offers the methods ([`crate::method`]), on interface vectors
+//! the method owns (forces, CG directions, per-interface slices):
+//! - [`InterfaceOperator::apply`]: forces → displacement `V` (one solve per
+//!   subdomain and the coarse step) → interface jump `J V`;
+//! - [`InterfaceOperator::force_stage`]: the stationary iteration's local
+//!   stage `F += d Σ B D B J V`, and [`InterfaceOperator::cable_stage`];
+//! - [`InterfaceOperator::precondition`]: CG's preconditioner;
+//! - the indicator sums and the global vectors of a solve.
+//!
+//! Per-subdomain work runs on the subdomain's own vectors; everything that
+//! crosses subdomains (neighbour traces, global sums, coarse gather and
+//! scatter, global vectors) goes through [`Communicator`]. The operator's
+//! results stay in its buffers (`ifaces[i].jump`, `subs[s].v`), which the
+//! methods read; scratch is allocated at set-up, no call allocates.
+
+use crate::coarse::CoarseProblem;
+use crate::comm::{Communicator, Threads};
+use crate::dd::{IfaceState, SubState};
+use crate::kernels::{self, Side};
+use crate::scaling::{self, EntryWeights};
+use rayon::prelude::*;
+
+/// The set-up interface operator (see the module documentation), generic
+/// over the communication seam: its code does not depend on where the
+/// subdomains live.
+pub struct InterfaceOperator<C: Communicator = Threads> {
+    pub(crate) subs: Vec<SubState>,
+    pub(crate) ifaces: Vec<IfaceState>,
+    pub(crate) coarse: Option<CoarseProblem>,
+    pub(crate) comm: C,
+    /// Per interface: `1 / multiplicity` of each entry's dof (the same on
+    /// both sides), so the cross-point projection reads no neighbour's
+    /// set-up data.
+    entry_inv_mult: Vec<Vec<f64>>,
+}
+
+/// `jump = lo − hi` on the interface and its two norms (length, and the
+/// force the jump leaves unbalanced through the lumped stiffness).
+#[inline]
+fn jump_of(it: &mut IfaceState, lo: &[f64], hi: &[f64]) {
+    kernels::jump_runs(&mut it.jump, lo, hi, &it.runs);
+    it.jump_norm2 = kernels::norm2(&it.jump);
+    it.force_norm2 = it.jump.iter().zip(&it.stiffness).map(|(j, k)| (j * k) * (j * k)).sum();
+}
+
+#[inline]
+fn dot(x: &[f64], y: &[f64]) -> f64 {
+    x.iter().zip(y).map(|(a, b)| a * b).sum::<f64>()
+}
+
+impl InterfaceOperator<Threads> {
+    /// The operator of set-up subdomains and interfaces, with the coarse
+    /// problem when there is a coarse step; all in this process.
+    pub(crate) fn new(subs: Vec<SubState>, ifaces: Vec<IfaceState>, coarse: Option<CoarseProblem>) -> Self {
+        let comm = Threads::new(subs.len(), ifaces.iter().map(|it| (it.lo, it.hi)).collect());
+        let entry_inv_mult = ifaces
+            .iter()
+            .map(|it| it.lo_idx.iter().map(|&a| subs[it.lo].inv_mult[a as usize]).collect())
+            .collect();
+        InterfaceOperator {
+            subs,
+            ifaces,
+            coarse,
+            comm,
+            entry_inv_mult,
+        }
+    }
+}
+
+impl<C: Communicator> InterfaceOperator<C> {
+    /// Entries of each interface.
+    pub(crate) fn interface_sizes(&self) -> impl Iterator<Item = usize> + Clone + '_ {
+        self.ifaces.iter().map(|it| it.lo_idx.len())
+    }
+
+    /// `V = V(F)` and `jump = J V`: the global step `r = b − C Bᵀ F − H k λ`
+    /// (without `load`: `b = 0`, the homogeneous problem of the CG operator;
+    /// without `with_cables`: no cable term), `y = K⁺ r`, the coarse step,
+    /// `V = y − Z f + R α`, then the jumps. `V` is left in the subdomains'
+    /// `v`, the jump in the interfaces' `jump`.
+    pub fn apply(&mut self, forces: &[Vec<f64>], with_cables: bool, load: bool) {
+        self.global_step(forces, with_cables, load);
+        self.jumps(None);
+    }
+
+    /// The global step of [`Self::apply`], without the jumps.
+    fn global_step(&mut self, forces: &[Vec<f64>], with_cables: bool, load: bool) {
+        let ifaces = &self.ifaces;
+        self.subs.par_iter_mut().for_each(|s| {
+            if load {
+                s.r.copy_from_slice(&s.b);
+            } else {
+                s.r.iter_mut().for_each(|v| *v = 0.0);
+            }
+            for &(i, is_lo) in &s.ifaces {
+                let it = &ifaces[i];
+                let (side, coef) = if is_lo { (Side::Lo, -1.0) } else { (Side::Hi, 1.0) };
+                kernels::scatter_add_runs(&mut s.r, side, &it.runs, &forces[i], coef);
+            }
+            if with_cables {
+                for (c, &lam) in s.cables.iter().zip(&s.lambda) {
+                    if lam != 0.0 {
+                        c.add_to(-c.k * lam, &mut s.r);
+                    }
+                }
+            }
+            s.y.copy_from_slice(&s.r);
+            s.op.solve_in_place(&mut s.y);
+        });
+        if let Some(coarse) = self.coarse.as_mut() {
+            // Macro part of the rhs, `Pᵀ J y` (reuses the solve above).
+            self.comm.neighbour_traces(
+                &self.subs,
+                |s| &s.y,
+                &mut self.ifaces,
+                |_, it, lo, hi| {
+                    kernels::jump_runs(&mut it.jump, lo, hi, &it.runs);
+                    let m = it.p.ncols();
+                    for q in 0..m {
+                        let col = it.p.col(q);
+                        it.pt[q] = col.iter().zip(&it.jump).map(|(a, b)| a * b).sum();
+                    }
+                },
+            );
+            // Kernel part, `Rᵀ r`.
+            self.subs.par_iter_mut().for_each(|s| {
+                let r = s.op.kernel();
+                for q in 0..r.ncols() {
+                    s.rt_r[q] = r.col(q).iter().zip(&s.r).map(|(a, b)| a * b).sum();
+                }
+            });
+            let (ifaces, subs) = (&self.ifaces, &self.subs);
+            self.comm.coarse_solve(
+                coarse,
+                |i| (ifaces[i].macro_off, &ifaces[i].pt[..]),
+                |s| (subs[s].alpha_off, &subs[s].rt_r[..]),
+            );
+            let coarse = &*coarse;
+            self.subs.par_iter_mut().for_each(|s| {
+                let f = coarse.macro_forces();
+                for (k, &c) in s.macro_cols.iter().enumerate() {
+                    s.fm[k] = f[c];
+                }
+                let na = s.alpha.len();
+                s.alpha
+                    .copy_from_slice(&coarse.kernel_amplitudes()[s.alpha_off..s.alpha_off + na]);
+                s.v.copy_from_slice(&s.y);
+                for (k, &fk) in s.fm.iter().enumerate() {
+                    if fk != 0.0 {
+                        for (v, z) in s.v.iter_mut().zip(s.z.col(k).iter()) {
+                            *v -= z * fk;
+                        }
+                    }
+                }
+                let r = s.op.kernel();
+                for (q, &a) in s.alpha.iter().enumerate() {
+                    for (v, rq) in s.v.iter_mut().zip(r.col(q).iter()) {
+                        *v += rq * a;
+                    }
+                }
+                s.v_norm2 = kernels::norm2(&s.v);
+            });
+        } else {
+            self.subs.par_iter_mut().for_each(|s| {
+                s.v.copy_from_slice(&s.y);
+                s.v_norm2 = kernels::norm2(&s.v);
+            });
+        }
+    }
+
+    /// `jump = J V` on every interface, with `V` the subdomains' own `v`, or
+    /// `v` when given (per subdomain: CG's iterate).
+    pub fn jumps(&mut self, v: Option<&[Vec<f64>]>) {
+        match v {
+            Some(v) => self
+                .comm
+                .neighbour_traces(v, |v| &v[..], &mut self.ifaces, |_, it, lo, hi| jump_of(it, lo, hi)),
+            None => self.comm.neighbour_traces(
+                &self.subs,
+                |s| &s.v,
+                &mut self.ifaces,
+                |_, it, lo, hi| jump_of(it, lo, hi),
+            ),
+        }
+    }
+
+    /// `F += d Σ_E B_Eᵀ D_E B_E jump` (cross points couple their pair
+    /// entries); `D_E` is the identity for a scalar `d` and `diag(K_E)` for
+    /// the lumped search direction (the paper's "lumped" `X^D`).
+    pub fn force_stage(&mut self, forces: &mut [Vec<f64>], d: f64) {
+        let ifaces = &self.ifaces;
+        self.subs.par_iter_mut().for_each(|s| {
+            for &(i, is_lo) in &s.ifaces {
+                let it = &ifaces[i];
+                let (side, coef) = if is_lo { (Side::Lo, 1.0) } else { (Side::Hi, -1.0) };
+                kernels::scatter_add_runs(&mut s.g, side, &it.runs, &it.jump, coef);
+            }
+            for &l in &s.iface_dofs {
+                s.g[l as usize] *= s.weight[l as usize];
+            }
+        });
+        self.comm.neighbour_traces(
+            &self.subs,
+            |s| &s.g,
+            forces,
+            |i, f, lo, hi| {
+                kernels::force_update_runs(f, d, lo, hi, &ifaces[i].runs);
+            },
+        );
+        self.subs.par_iter_mut().for_each(|s| {
+            for &l in &s.iface_dofs {
+                s.g[l as usize] = 0.0;
+            }
+        });
+    }
+
+    /// The cable stage of the stationary iteration, per subdomain: the
+    /// elongations `h_cᵀ V` and the projection `λ ← max(0, −(e + e0))`, with
+    /// the change of `λ` kept for [`Self::cable_change2`].
+    pub fn cable_stage(&mut self) {
+        self.subs.par_iter_mut().for_each(|s| {
+            for (c, e) in s.cables.iter().zip(s.elong.iter_mut()) {
+                *e = c.elongation(&s.v);
+            }
+            (s.dlambda2, s.dforce2) = kernels::cable_projection(&mut s.lambda, &s.elong, &s.e0, &s.kc);
+        });
+    }
+
+    /// `z = (I − P Pᵀ) Σ_E B_D,E S_E B_D,Eᵀ r` (`B_D` the jump operator
+    /// scaled by the weights `w`, [`crate::scaling`]) with `S_E` the Schur
+    /// complement of the subdomain on its interface (Dirichlet: the
+    /// interface force that holds the displacement `Bᵀr` with the interior
+    /// free), or `K_E` itself on the interface dofs (lumped: interior held
+    /// at zero), then the macro part removed. `range(P)` is in the null
+    /// space of the CG operator (the coarse step absorbs it); leaving it in
+    /// `z` lets round-off grow there and break the iteration on long runs.
+    pub fn precondition(&mut self, r: &[Vec<f64>], w: &[EntryWeights], z: &mut [Vec<f64>]) {
+        let ifaces = &self.ifaces;
+        self.subs.par_iter_mut().for_each(|s| {
+            for &(i, is_lo) in &s.ifaces {
+                let it = &ifaces[i];
+                let (side, coef, w) = if is_lo {
+                    (Side::Lo, 1.0, &w[i].lo)
+                } else {
+                    (Side::Hi, -1.0, &w[i].hi)
+                };
+                scaling::scatter_add_scaled_runs(&mut s.g, side, &it.runs, &r[i], w, coef);
+            }
+            // s.r is free between global steps: K_E B_Eᵀ r (lumped) or
+            // S_E B_Eᵀ r (Dirichlet) goes there.
+            match s.interior.as_mut() {
+                Some(ip) => ip.apply_schur(&s.op, &mut s.g, &mut s.r),
+                None => s.op.apply(&s.g, &mut s.r),
+            }
+            for &l in &s.iface_dofs {
+                s.g[l as usize] = 0.0;
+            }
+        });
+        self.comm.neighbour_traces(
+            &self.subs,
+            |s| &s.r,
+            z,
+            |i, cz, lo, hi| {
+                scaling::scaled_jump_runs(cz, lo, &w[i].lo, hi, &w[i].hi, &ifaces[i].runs);
+            },
+        );
+        // Circulations of the redundant pair forces at cross points (zero
+        // net force on every subdomain) are null directions too: project z
+        // onto the differences of subdomain forces, `z ← (B_lo z − B_hi z)/m`
+        // per dof of multiplicity m (the identity where m = 2).
+        let cz = &*z;
+        self.subs.par_iter_mut().for_each(|s| {
+            for &(i, is_lo) in &s.ifaces {
+                let it = &ifaces[i];
+                let (side, coef) = if is_lo { (Side::Lo, 1.0) } else { (Side::Hi, -1.0) };
+                kernels::scatter_add_runs(&mut s.g, side, &it.runs, &cz[i], coef);
+            }
+        });
+        let inv_mult = &self.entry_inv_mult;
+        self.comm.neighbour_traces(
+            &self.subs,
+            |s| &s.g,
+            z,
+            |i, cz, lo, hi| {
+                let it = &ifaces[i];
+                for (((z, &a), &b), &m) in cz.iter_mut().zip(&it.lo_idx).zip(&it.hi_idx).zip(&inv_mult[i]) {
+                    *z = (lo[a as usize] - hi[b as usize]) * m;
+                }
+                for q in 0..it.p.ncols() {
+                    let col = it.p.col(q);
+                    let c: f64 = col.iter().zip(cz.iter()).map(|(a, b)| a * b).sum();
+                    for (z, a) in cz.iter_mut().zip(col.iter()) {
+                        *z -= c * a;
+                    }
+                }
+            },
+        );
+        self.subs.par_iter_mut().for_each(|s| {
+            for &l in &s.iface_dofs {
+                s.g[l as usize] = 0.0;
+            }
+        });
+    }
+
+    /// The energies of the CG stopping test ([`crate::cg_stopping`]) for
+    /// the iterate `v` (per subdomain), with `jump` = `J v`: `J = Σ_E (ū_E −
+    /// v_E)ᵀ K_E (ū_E − v_E)`, the strain energy that averaging the copies
+    /// adds (`ū − v_E` at a dof of multiplicity `m` is `1/m` of the signed
+    /// sum of its pair jumps), and `E = Σ_E b_Eᵀ v_E`, the work of the loads
+    /// (`‖u*‖_K²` at convergence). `energy` holds each subdomain's parts.
+    /// One product with `K_E` per subdomain; no allocation.
+    pub fn jump_energies(&mut self, v: &[Vec<f64>], energy: &mut [(f64, f64)]) -> (f64, f64) {
+        let ifaces = &self.ifaces;
+        self.subs
+            .par_iter_mut()
+            .zip(v.par_iter().zip(energy.par_iter_mut()))
+            .for_each(|(s, (cv, energy))| {
+                for &(i, is_lo) in &s.ifaces {
+                    let it = &ifaces[i];
+                    let (side, coef) = if is_lo { (Side::Lo, -1.0) } else { (Side::Hi, 1.0) };
+                    kernels::scatter_add_runs(&mut s.g, side, &it.runs, &it.jump, coef);
+                }
+                for &l in &s.iface_dofs {
+                    s.g[l as usize] *= s.inv_mult[l as usize];
+                }
+                s.op.apply(&s.g, &mut s.r);
+                let j: f64 = s.iface_dofs.iter().map(|&l| s.g[l as usize] * s.r[l as usize]).sum();
+                for &l in &s.iface_dofs {
+                    s.g[l as usize] = 0.0;
+                }
+                let e: f64 = s.b.iter().zip(cv).map(|(b, v)| b * v).sum();
+                *energy = (j, e);
+            });
+        let [j, e] = self.comm.sum_subdomains(|s| [energy[s].0, energy[s].1]);
+        (j, e)
+    }
+
+    /// `Σ_Γ ⟨x_Γ, y_Γ⟩` over the interfaces.
+    pub fn dot(&self, x: &[Vec<f64>], y: &[Vec<f64>]) -> f64 {
+        self.comm.sum_interfaces(|i| [dot(&x[i], &y[i])])[0]
+    }
+
+    /// `Σ_Γ ⟨x_Γ, jump_Γ⟩` over the interfaces.
+    pub fn dot_jump(&self, x: &[Vec<f64>]) -> f64 {
+        self.comm.sum_interfaces(|i| [dot(&x[i], &self.ifaces[i].jump)])[0]
+    }
+
+    /// `Σ_Γ ‖x_Γ‖²` over the interfaces.
+    pub fn norm2(&self, x: &[Vec<f64>]) -> f64 {
+        self.comm.sum_interfaces(|i| [kernels::norm2(&x[i])])[0]
+    }
+
+    /// `Σ_E ‖v_E‖²` over the subdomains.
+    pub fn norm2_subdomains(&self, v: &[Vec<f64>]) -> f64 {
+        self.comm.sum_subdomains(|s| [kernels::norm2(&v[s])])[0]
+    }
+
+    /// `‖V‖²` of the last [`Self::apply`] (subdomain copies counted apart).
+    pub fn v_norm2(&self) -> f64 {
+        self.comm.sum_subdomains(|s| [self.subs[s].v_norm2])[0]
+    }
+
+    /// `(‖J V‖², ‖k ∘ J V‖²)` of the last jumps.
+    pub fn jump_norms2(&self) -> (f64, f64) {
+        let [j, f] = self
+            .comm
+            .sum_interfaces(|i| [self.ifaces[i].jump_norm2, self.ifaces[i].force_norm2]);
+        (j, f)
+    }
+
+    /// `(‖Δλ‖², ‖k Δλ‖²)` of the last [`Self::cable_stage`].
+    pub fn cable_change2(&self) -> (f64, f64) {
+        let [l, f] = self
+            .comm
+            .sum_subdomains(|s| [self.subs[s].dlambda2, self.subs[s].dforce2]);
+        (l, f)
+    }
+
+    /// Norm of the assembled right-hand side (loads and prestrain);
+    /// `dof_maps[s]` is the global dof of each local dof of subdomain `s`.
+    /// Allocates (once per solve).
+    pub fn load_norm(&self, dof_maps: &[Vec<usize>], n_free: usize) -> f64 {
+        let mut b_global = vec![0.0; n_free];
+        self.comm.assemble(&mut b_global, |s, out| {
+            for (l, &d) in dof_maps[s].iter().enumerate() {
+                out[d] += self.subs[s].b[l];
+            }
+        });
+        kernels::norm2(&b_global).sqrt()
+    }
+
+    /// Global displacement (average of the subdomain copies) and slacks.
+    pub fn assemble(&self, dof_maps: &[Vec<usize>], n_free: usize, n_cables: usize) -> (Vec<f64>, Vec<f64>) {
+        let mut u = vec![0.0; n_free];
+        self.comm.assemble(&mut u, |s, out| {
+            let st = &self.subs[s];
+            for (l, &d) in dof_maps[s].iter().enumerate() {
+                out[d] += st.v[l] * st.inv_mult[l];
+            }
+        });
+        let mut lambda = vec![0.0; n_cables];
+        // Every cable belongs to one subdomain: its slack is placed, not summed.
+        self.comm.assemble(&mut lambda, |s, out| {
+            let st = &self.subs[s];
+            for (c, &lam) in st.cables.iter().zip(&st.lambda) {
+                out[c.cable] = lam;
+            }
+        });
+        (u, lambda)
+    }
+
+    /// Zero cable slacks.
+    pub(crate) fn reset_slacks(&mut self) {
+        for s in self.subs.iter_mut() {
+            s.lambda.iter_mut().for_each(|v| *v = 0.0);
+        }
+    }
+
+    /// Whether any interface exists (more than one subdomain).
+    pub fn has_interfaces(&self) -> bool {
+        !self.ifaces.is_empty()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    //! The seam is enough for a distributed backend: a communicator that
+    //! hands the operator copies of the neighbours' interface entries only
+    //! (everything else NaN, as in an MPI rank's ghost buffers) and sums in
+    //! its own loop gives the same bits as [`Threads`].
+    use super::*;
+    use crate::dd::{DdOptions, DdSolver};
+    use crate::generate::{grid, GridParams};
+    use crate::model::Model;
+    use crate::settings::{Preconditioner, SearchDirection};
+    use crate::solve::decompose;
+
+    struct Ghosts {
+        inner: Threads,
+        ends: Vec<(usize, usize)>,
+        iface_dofs: Vec<Vec<u32>>,
+    }
+
+    impl Communicator for Ghosts {
+        fn neighbour_traces<S, T, R, F>(&self, subs: &[S], trace: R, items: &mut [T], f: F)
+        where
+            S: Sync,
+            T: Send,
+            R: Fn(&S) -> &[f64] + Sync,
+            F: Fn(usize, &mut T, &[f64], &[f64]) + Sync,
+        {
+            // What a rank would receive: the interface entries of each side.
+            let ghost: Vec<Vec<f64>> = subs
+                .iter()
+                .zip(&self.iface_dofs)
+                .map(|(s, dofs)| {
+                    let v = trace(s);
+                    let mut g = vec![f64::NAN; v.len()];
+                    for &l in dofs {
+                        g[l as usize] = v[l as usize];
+                    }
+                    g
+                })
+                .collect();
+            for (i, t) in items.iter_mut().enumerate() {
+                let (lo, hi) = self.ends[i];
+                f(i, t, &ghost[lo], &ghost[hi]);
+            }
+        }
+
+        fn sum_interfaces<const N: usize>(&self, f: impl Fn(usize) -> [f64; N]) -> [f64; N] {
+            // Each part computed first, then reduced in interface order.
+            let parts: Vec<[f64; N]> = (0..self.ends.len()).map(f).collect();
+            let mut acc = [-0.0; N];
+            for p in parts {
+                for (a, x) in acc.iter_mut().zip(p) {
+                    *a += x;
+                }
+            }
+            acc
+        }
+
+        fn sum_subdomains<const N: usize>(&self, f: impl Fn(usize) -> [f64; N]) -> [f64; N] {
+            self.inner.sum_subdomains(f)
+        }
+
+        fn coarse_solve<'a>(
+            &self,
+            coarse: &mut CoarseProblem,
+            iface_part: impl Fn(usize) -> (usize, &'a [f64]),
+            sub_part: impl Fn(usize) -> (usize, &'a [f64]),
+        ) {
+            // A stale right-hand side must not survive the gather.
+            coarse.rhs.iter_mut().for_each(|x| *x = f64::NAN);
+            self.inner.coarse_solve(coarse, iface_part, sub_part);
+        }
+
+        fn assemble(&self, out: &mut [f64], add: impl Fn(usize, &mut [f64])) {
+            self.inner.assemble(out, add);
+        }
+    }
+
+    fn solver() -> DdSolver {
+        let scene = grid(&GridParams {
+            nx: 8,
+            ny: 6,
+            unilateral: false,
+            ..Default::default()
+        });
+        let model = Model::from_scene(&scene).unwrap();
+        let dec = decompose(&model, &scene, 6).unwrap();
+        let opts = DdOptions {
+            coarse: true,
+            tolerance: 1e-8,
+            max_iterations: 10,
+            search_direction: SearchDirection::Auto,
+            krylov: true,
+            preconditioner: Preconditioner::Dirichlet,
+        };
+        DdSolver::new(&model, &dec, opts).unwrap()
+    }
+
+    fn same(a: &[f64], b: &[f64]) -> bool {
+        a.len() == b.len() && a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits())
+    }
+
+    #[test]
+    fn ghost_buffers_give_the_same_bits_as_threads() {
+        let mut local = solver().op;
+        let InterfaceOperator {
+            subs,
+            ifaces,
+            coarse,
+            comm,
+            entry_inv_mult,
+        } = solver().op;
+        let ghosts = Ghosts {
+            ends: ifaces.iter().map(|it| (it.lo, it.hi)).collect(),
+            iface_dofs: subs.iter().map(|s| s.iface_dofs.clone()).collect(),
+            inner: comm,
+        };
+        let mut ghost = InterfaceOperator {
+            subs,
+            ifaces,
+            coarse,
+            comm: ghosts,
+            entry_inv_mult,
+        };
+        assert!(local.coarse.is_some() && local.ifaces.len() > 4);
+        let sizes: Vec<usize> = local.interface_sizes().collect();
+        let vec_of = |seed: usize| -> Vec<Vec<f64>> {
+            sizes
+                .iter()
+                .enumerate()
+                .map(|(i, &n)| {
+                    (0..n)
+                        .map(|j| ((i * 31 + j * 7 + seed) % 13) as f64 / 13.0 - 0.4)
+                        .collect()
+                })
+                .collect()
+        };
+        for (a, b) in local.subs.iter_mut().zip(ghost.subs.iter_mut()) {
+            for (l, (x, y)) in a.b.iter_mut().zip(b.b.iter_mut()).enumerate() {
+                *x = (l % 5) as f64 - 2.0;
+                *y = *x;
+            }
+        }
+        let forces = vec_of(1);
+        for load in [true, false] {
+            local.apply(&forces, false, load);
+            ghost.apply(&forces, false, load);
+            for (a, b) in local.ifaces.iter().zip(&ghost.ifaces) {
+                assert!(same(&a.jump, &b.jump));
+            }
+            for (a, b) in local.subs.iter().zip(&ghost.subs) {
+                assert!(same(&a.v, &b.v));
+            }
+            assert_eq!(local.jump_norms2(), ghost.jump_norms2());
+            assert_eq!(local.v_norm2().to_bits(), ghost.v_norm2().to_bits());
+        }
+        // The force stage and the preconditioner.
+        let (mut fa, mut fb) = (vec_of(2), vec_of(2));
+        local.force_stage(&mut fa, 0.3);
+        ghost.force_stage(&mut fb, 0.3);
+        assert!(fa.iter().zip(&fb).all(|(a, b)| same(a, b)));
+        let w: Vec<EntryWeights> = sizes
+            .iter()
+            .map(|&n| EntryWeights {
+                lo: vec![0.5; n],
+                hi: vec![0.5; n],
+            })
+            .collect();
+        let r = vec_of(3);
+        let (mut za, mut zb) = (vec_of(0), vec_of(0));
+        local.precondition(&r, &w, &mut za);
+        ghost.precondition(&r, &w, &mut zb);
+        assert!(za.iter().zip(&zb).all(|(a, b)| same(a, b)));
+        assert!(za.iter().flatten().all(|x| x.is_finite()) && za.iter().flatten().any(|&x| x != 0.0));
+        assert_eq!(local.dot(&r, &za).to_bits(), ghost.dot(&r, &zb).to_bits());
+        // Jumps of given displacements.
+        let v: Vec<Vec<f64>> = local
+            .subs
+            .iter()
+            .map(|s| s.v.iter().map(|x| 2.0 * x).collect())
+            .collect();
+        local.jumps(Some(&v));
+        ghost.jumps(Some(&v));
+        for (a, b) in local.ifaces.iter().zip(&ghost.ifaces) {
+            assert!(same(&a.jump, &b.jump));
+        }
+    }
+}
