@@ -199,6 +199,9 @@ pub struct CoarseProblem {
     pub setup_s: f64,
     last_residual: f64,
     worst_residual: f64,
+    /// Backward error the refinement stops at ([`BACKWARD_ERROR_TARGET`]
+    /// unless a caller relaxes it: [`Self::set_refinement_target`]).
+    target: f64,
     /// `‖L‖` of the backward error, estimated by its largest diagonal entry
     /// (`G` has orthonormal columns per subdomain: norm ~1).
     l_norm: f64,
@@ -424,6 +427,7 @@ impl CoarseProblem {
             work_a: vec![0.0; na],
             last_residual: 0.0,
             worst_residual: 0.0,
+            target: BACKWARD_ERROR_TARGET,
             l_norm,
             setup_s: t0.elapsed().as_secs_f64(),
         })
@@ -489,11 +493,11 @@ impl CoarseProblem {
             let scale = scale_f.min(scale_a).max(f64::MIN_POSITIVE);
             // Stop at round-off, when a cycle no longer halves the true
             // residual (its floor), or out of cycles.
-            if !(error > BACKWARD_ERROR_TARGET) || (cycle > 0 && !(error < 0.5 * prev)) || cycle == MAX_CYCLES {
+            if !(error > self.target) || (cycle > 0 && !(error < 0.5 * prev)) || cycle == MAX_CYCLES {
                 break;
             }
             // Right-preconditioned GMRES from the current solution.
-            let target = 0.5 * BACKWARD_ERROR_TARGET * scale;
+            let target = 0.5 * self.target * scale;
             for (v, &r) in kr.v[..n].iter_mut().zip(&res) {
                 *v = r / beta;
             }
@@ -646,6 +650,19 @@ impl CoarseProblem {
     /// any solve produced NaN): how far from exact the coarse step has been.
     pub fn worst_residual(&self) -> f64 {
         self.worst_residual
+    }
+
+    /// Sets the backward error the refinement of later solves stops at
+    /// (never below round-off, [`BACKWARD_ERROR_TARGET`]): a caller that
+    /// solves only loosely (the nonsmooth CG's early active-set steps) need
+    /// not pay for round-off accuracy of each coarse solve.
+    pub fn set_refinement_target(&mut self, target: f64) {
+        self.target = target.max(BACKWARD_ERROR_TARGET);
+    }
+
+    /// The backward error the refinement stops at.
+    pub fn refinement_target(&self) -> f64 {
+        self.target
     }
 
     /// Stored entries of the coarse factor.

@@ -143,11 +143,33 @@ impl<'a> DdProblem<'a> {
     /// Builds the algebraic problem of a truss model (factors every
     /// subdomain in parallel).
     pub fn from_model(model: &Model, dec: &'a Decomposition) -> Result<DdProblem<'a>> {
+        Self::from_model_reusing(model, dec, Vec::new())
+    }
+
+    /// [`Self::from_model`], taking `reused[s]` (when `Some`) as subdomain
+    /// `s`'s operator instead of factoring it: an operator of an earlier
+    /// set-up whose subdomain had the same elements (same stiffness) and
+    /// the same local dof layout, which the caller vouches for (the
+    /// nonsmooth CG refactors only the subdomains whose slack cables
+    /// changed). Missing entries are factored.
+    pub fn from_model_reusing(
+        model: &Model,
+        dec: &'a Decomposition,
+        mut reused: Vec<Option<SubdomainOperator>>,
+    ) -> Result<DdProblem<'a>> {
+        reused.resize_with(dec.len(), || None);
         let ops: Vec<Result<SubdomainOperator>> = dec
             .subdomains
             .par_iter()
+            .zip(reused.into_par_iter())
             .enumerate()
-            .map(|(i, sd)| SubdomainOperator::new(i, model, sd, 64))
+            .map(|(i, (sd, op))| match op {
+                Some(mut op) if op.n() == sd.dofs.len() => {
+                    op.id = i;
+                    Ok(op)
+                }
+                _ => SubdomainOperator::new(i, model, sd, 64),
+            })
             .collect();
         let mut operators = Vec::with_capacity(ops.len());
         for op in ops {
@@ -328,8 +350,20 @@ impl DdSolver {
     /// Sets up a truss model: factors every subdomain, builds the macro
     /// basis and the coarse problem (multilevel), and picks `d`.
     pub fn new(model: &Model, dec: &Decomposition, opts: DdOptions) -> Result<DdSolver> {
+        Self::new_reusing(model, dec, opts, Vec::new())
+    }
+
+    /// [`Self::new`] with some subdomain operators taken from an earlier
+    /// set-up ([`DdProblem::from_model_reusing`], [`Self::into_operators`]);
+    /// the macro space and the coarse problem are rebuilt.
+    pub fn new_reusing(
+        model: &Model,
+        dec: &Decomposition,
+        opts: DdOptions,
+        reused: Vec<Option<SubdomainOperator>>,
+    ) -> Result<DdSolver> {
         let t0 = Instant::now();
-        let problem = DdProblem::from_model(model, dec)?;
+        let problem = DdProblem::from_model_reusing(model, dec, reused)?;
         let factor_s = t0.elapsed().as_secs_f64();
         let name_dof = |d: usize| {
             let (node, c) = model.dof_owner(d);
@@ -737,6 +771,12 @@ impl DdSolver {
     /// and tools; the iteration does not depend on its scratch state).
     pub fn operator_mut(&mut self, s: usize) -> &mut SubdomainOperator {
         &mut self.op.subs[s].op
+    }
+
+    /// The factored subdomain operators, for a later set-up that reuses
+    /// them ([`Self::new_reusing`]).
+    pub fn into_operators(self) -> Vec<SubdomainOperator> {
+        self.subs.into_iter().map(|s| s.op).collect()
     }
 
     /// Number of subdomains.

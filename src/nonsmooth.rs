@@ -17,9 +17,13 @@
 //! interface forces of the previous one. The set is accepted only after a
 //! solve to the requested tolerance leaves it unchanged.
 //!
-//! This first version sets up a fresh [`DdSolver`] (subdomain factors,
-//! coarse problem) for every slack set it visits; the last one is kept, so
-//! load steps and load cases whose set does not change cost no set-up.
+//! Each new slack set gets a new [`DdSolver`] (macro space and coarse
+//! problem rebuilt), but only the subdomains whose elements or local dof
+//! layout changed are refactored: the others take their operator over from
+//! the previous set-up (see [`NonsmoothOutcome::reused`]). The last set-up
+//! is kept, so load steps and load cases whose set does not change cost no
+//! set-up.
+//!
 //! A softened step keeps a slack cable's geometric stiffness `t0 / L`, an
 //! exact one drops the cable altogether (the direct solver's refactoring
 //! path; its Schur-complement path keeps `t0 / L`: the two differ only
@@ -28,9 +32,9 @@
 //! `NSDD_NS_DEBUG=1` prints one line per outer step (set size, inner
 //! tolerance and iterations, set-up and CG time, coarse sizes) to stderr.
 //!
-//! Not done yet: reusing the factorizations of subdomains whose slack set
-//! did not change (each new set factors every subdomain and rebuilds the
-//! coarse problem), and low-rank updates instead.
+//! Not done yet: reusing the coarse contributions and interior (Dirichlet)
+//! factors of unchanged subdomains, and low-rank updates instead of
+//! refactoring.
 
 use crate::dd::{DdOptions, DdSolver};
 use crate::decomposition::Decomposition;
@@ -41,6 +45,7 @@ use crate::model::FIXED;
 use crate::partition::Partition;
 use crate::result::HistoryEntry;
 use crate::scene::{Preconditioner, SearchDirection};
+use crate::subdomain::SubdomainOperator;
 use std::collections::{HashMap, HashSet};
 
 /// Stiffness fraction kept by slack cables in a step whose slack set alone
@@ -67,6 +72,29 @@ pub const INNER_TOL_MAX: f64 = 1e-2;
 /// Inner tolerance as a fraction of the last relative violation.
 pub const INNER_TOL_FACTOR: f64 = 0.1;
 
+/// Backward error of the coarse solves as a fraction of the inner
+/// tolerance (the coarse problem clamps it at round-off, its default).
+/// The coarse problems of the structures without their slack cables are
+/// ill-conditioned enough that the default 1e-15 is at their round-off
+/// floor: its GMRES refinement then ran 15-30 iterations per coarse solve
+/// (7 096 in the 290 CG iterations of the 32² grid, 16 subdomains, 60 % of
+/// the solve time); a millionth of the inner tolerance takes 37 in all, for
+/// the same error against direct (7e-12) and 296 CG iterations.
+pub const COARSE_TARGET_FACTOR: f64 = 1e-6;
+
+/// Inner iterations allowed to a step whose set is clearly wrong (last
+/// relative violation at least [`EARLY_STOP_VIOLATION`]; the first step
+/// counts as one). On the 32² grid to 1e-8 (`nsdd solve g32.toml --method
+/// cg --subdomains 16`): no cap 296 iterations in 11 steps, 15 → 200 in
+/// 11, 10 → 263 in 14, 5 → 207 in 16; with 5 and a threshold of 0.01 the
+/// set no longer settled within a minute. Softened (mechanism) steps are
+/// never stopped early: doing so led the tower of
+/// `slack_set_with_a_mechanism_is_named_like_direct` to another set.
+pub const EARLY_STOP_ITERATIONS: usize = 15;
+
+/// See [`EARLY_STOP_ITERATIONS`].
+pub const EARLY_STOP_VIOLATION: f64 = 0.1;
+
 /// Settings of the nonsmooth CG.
 #[derive(Debug, Clone)]
 pub struct NonsmoothOptions {
@@ -89,6 +117,13 @@ pub struct NonsmoothOutcome {
     pub outer_steps: usize,
     /// Outer steps that needed a new DD set-up (factorizations).
     pub setups: usize,
+    /// Subdomain factorizations over those set-ups (failed attempts
+    /// included)...
+    pub factored: usize,
+    /// ...and subdomain operators taken over from the previous set-up
+    /// instead (same elements and dof layout: no slack cable of theirs
+    /// changed).
+    pub reused: usize,
 }
 
 /// The set-up of the nonsmooth CG: the decomposition, and the DD solver of
@@ -101,6 +136,57 @@ pub struct NonsmoothCg {
     current: Option<Step>,
     /// Last set a solve settled on (initial set of the next solve).
     settled: Option<Vec<bool>>,
+    pool: Pool,
+}
+
+/// Operators of the previous set-up by [`OpKey`] while the next one is
+/// built (empty otherwise), and the factorizations and reuses since the
+/// last `solve` began.
+#[derive(Default)]
+struct Pool {
+    ops: HashMap<OpKey, SubdomainOperator>,
+    factored: usize,
+    reused: usize,
+}
+
+impl Pool {
+    /// One DD set-up of `lin` on `dec` (`original`: index in the model of
+    /// each element of `lin`, `None` for the same numbering), with the
+    /// pooled operators of unchanged subdomains.
+    fn setup(
+        &mut self,
+        lin: &Model,
+        dec: &Decomposition,
+        original: Option<&[usize]>,
+        opts: &DdOptions,
+    ) -> Result<(DdSolver, Vec<OpKey>)> {
+        let keys = op_keys(lin, dec, original);
+        let reused: Vec<Option<SubdomainOperator>> = keys.iter().map(|k| self.ops.remove(k)).collect();
+        let hits = reused.iter().filter(|o| o.is_some()).count();
+        self.reused += hits;
+        self.factored += keys.len() - hits;
+        let dd = DdSolver::new_reusing(lin, dec, opts.clone(), reused)?;
+        Ok((dd, keys))
+    }
+}
+
+/// What a subdomain operator is a function of: its elements (original
+/// index, axial stiffness bits) in assembly order and its local dofs.
+/// Geometry is fixed, so equal keys mean equal `K_E` and layout.
+type OpKey = (Vec<(usize, u64)>, Vec<usize>);
+
+fn op_keys(lin: &Model, dec: &Decomposition, original: Option<&[usize]>) -> Vec<OpKey> {
+    dec.subdomains
+        .iter()
+        .map(|sd| {
+            let els = sd
+                .elements
+                .iter()
+                .map(|&e| (original.map_or(e, |o| o[e]), lin.elements[e].k.to_bits()))
+                .collect();
+            (els, sd.dofs.clone())
+        })
+        .collect()
 }
 
 /// One outer step's linear problem, set up.
@@ -111,6 +197,8 @@ struct Step {
     /// Decomposition of the structure without its slack cables (`None`:
     /// the solver's own, for a softened step).
     dec: Option<Decomposition>,
+    /// Key of each subdomain operator of `dd`.
+    keys: Vec<OpKey>,
 }
 
 /// Interface forces keyed by `(lo, hi, global dof)`: decompositions of
@@ -177,7 +265,12 @@ fn mechanism_message(model: &Model, slack: &[bool]) -> String {
 /// partition restricted to the remaining elements, weak nodes repaired.
 /// A node left without any element, or a subdomain left empty, is reported
 /// as a mechanism (the caller then takes the softened step).
-fn reduced_problem(model: &Model, dec: &Decomposition, slack: &[bool], repair: bool) -> Result<(Model, Decomposition)> {
+fn reduced_problem(
+    model: &Model,
+    dec: &Decomposition,
+    slack: &[bool],
+    repair: bool,
+) -> Result<(Model, Decomposition, Vec<usize>)> {
     let mut is_slack = vec![false; model.elements.len()];
     for (c, &e) in model.cables.iter().enumerate() {
         is_slack[e] = slack[c];
@@ -205,7 +298,7 @@ fn reduced_problem(model: &Model, dec: &Decomposition, slack: &[bool], repair: b
         partition.repair_weak_nodes(&m);
     }
     let d = Decomposition::new(&m, partition);
-    Ok((m, d))
+    Ok((m, d, keep))
 }
 
 impl NonsmoothCg {
@@ -226,6 +319,7 @@ impl NonsmoothCg {
             opts,
             current: None,
             settled: None,
+            pool: Pool::default(),
         })
     }
 
@@ -269,6 +363,23 @@ impl NonsmoothCg {
                 return Ok(false);
             }
         }
+        // The previous set-up's operators go to the pool: a subdomain whose
+        // elements and dof layout did not change takes its operator back
+        // instead of being refactored (a set change touches the subdomains
+        // owning the flipped cables, and their neighbours only where a node
+        // at the cut appears or disappears).
+        if let Some(old) = self.current.take() {
+            for (key, op) in old.keys.into_iter().zip(old.dd.into_operators()) {
+                self.pool.ops.insert(key, op);
+            }
+        }
+        let out = self.build_step(model, slack, soft);
+        self.pool.ops.clear();
+        self.current = Some(out?);
+        Ok(true)
+    }
+
+    fn build_step(&mut self, model: &Model, slack: &[bool], soft: bool) -> Result<Step> {
         let opts = DdOptions {
             coarse: true,
             krylov: true,
@@ -277,13 +388,16 @@ impl NonsmoothCg {
             max_iterations: self.opts.max_iterations,
             search_direction: SearchDirection::Auto,
         };
+        let (own, pool) = (&self.dec, &mut self.pool);
         let step = if soft || !slack.iter().any(|&s| s) {
             let lin = linear_model(model, slack, if soft { SOFT } else { 0.0 });
+            let (dd, keys) = pool.setup(&lin, own, None, &opts)?;
             Step {
                 slack: slack.to_vec(),
                 soft,
-                dd: Box::new(DdSolver::new(&lin, &self.dec, opts)?),
+                dd: Box::new(dd),
                 dec: None,
+                keys,
             }
         } else {
             // A local mechanism at the cut can leave a round-off pivot that
@@ -294,11 +408,12 @@ impl NonsmoothCg {
             let mut first_err = None;
             let mut found = None;
             for repair in [true, false] {
-                match reduced_problem(model, &self.dec, slack, repair)
-                    .and_then(|(lin, dec)| Ok((DdSolver::new(&lin, &dec, opts.clone())?, dec)))
-                {
-                    Ok((dd, dec)) => {
-                        found = Some((dd, Some(dec)));
+                match reduced_problem(model, own, slack, repair).and_then(|(lin, dec, keep)| {
+                    let (dd, keys) = pool.setup(&lin, &dec, Some(&keep), &opts)?;
+                    Ok((dd, dec, keys))
+                }) {
+                    Ok((dd, dec, keys)) => {
+                        found = Some((dd, Some(dec), keys));
                         break;
                     }
                     Err(e) => {
@@ -308,21 +423,21 @@ impl NonsmoothCg {
             }
             if found.is_none() {
                 let lin = linear_model(model, slack, 0.0);
-                match DdSolver::new(&lin, &self.dec, opts) {
-                    Ok(dd) => found = Some((dd, None)),
+                match pool.setup(&lin, own, None, &opts) {
+                    Ok((dd, keys)) => found = Some((dd, None, keys)),
                     Err(e) => return Err(first_err.unwrap_or(e)),
                 }
             }
-            let (dd, dec) = found.expect("set above");
+            let (dd, dec, keys) = found.expect("set above");
             Step {
                 slack: slack.to_vec(),
                 soft,
                 dd: Box::new(dd),
                 dec,
+                keys,
             }
         };
-        self.current = Some(step);
-        Ok(true)
+        Ok(step)
     }
 
     /// Solves for the external forces `f_ext` (free dofs) with exact cable
@@ -352,6 +467,8 @@ impl NonsmoothCg {
         let mut total = 0usize;
         let mut outer = 0usize;
         let mut setups = 0usize;
+        self.pool.factored = 0;
+        self.pool.reused = 0;
         let mut seen: HashSet<Vec<bool>> = HashSet::new();
         let mut murty = false;
         // Relative size of the last violation; none measured yet.
@@ -391,11 +508,18 @@ impl NonsmoothCg {
                 }
                 Err(e) => return Err(e),
             };
-            let budget = self.opts.max_iterations.saturating_sub(total).max(1);
+            let left = self.opts.max_iterations.saturating_sub(total).max(1);
+            // While the set is clearly wrong, a loose solve to the end buys
+            // nothing the next set keeps: stop it early.
+            let capped = !soft && violation >= EARLY_STOP_VIOLATION && EARLY_STOP_ITERATIONS < left;
+            let budget = if capped { EARLY_STOP_ITERATIONS } else { left };
             let step = self.current.as_mut().expect("set up above");
             let dec = step.dec.as_ref().unwrap_or(&self.dec);
             let dd = &mut step.dd;
             dd.set_stopping(inner_tol, budget);
+            if let Some(c) = dd.coarse_problem_mut() {
+                c.set_refinement_target(COARSE_TARGET_FACTOR * inner_tol);
+            }
             let warm = match forces.as_ref() {
                 Some(f) => dd.set_interface_forces(&forces_on(dec, f)).is_ok(),
                 None => false,
@@ -460,14 +584,20 @@ impl NonsmoothCg {
                 );
                 let st = self.current.as_ref().unwrap().dd.stats();
                 eprintln!(
-                    "   kernel {} macro {} nnz_l {} factor {:.3}s coarse {:.3}s",
-                    st.kernel_unknowns, st.macro_unknowns, st.nnz_l, st.factor_s, st.coarse_s
+                    "   kernel {} macro {} nnz_l {} factor {:.3}s coarse {:.3}s; subdomains factored {} reused {} so far",
+                    st.kernel_unknowns, st.macro_unknowns, st.nnz_l, st.factor_s, st.coarse_s, self.pool.factored, self.pool.reused
                 );
             }
             if let Some(h) = history.last_mut() {
                 h.cable_change = Some(violation);
             }
             if first.is_none() {
+                if capped && !inner_converged {
+                    // Stopped early on a set that then looked right: solve
+                    // it properly before trusting it.
+                    violation = 0.0;
+                    continue;
+                }
                 if inner_tol > tol && inner_converged {
                     // Settled on a loose solve: confirm at the tolerance.
                     violation = 0.0;
@@ -488,6 +618,8 @@ impl NonsmoothCg {
                     history,
                     outer_steps: outer,
                     setups,
+                    factored: self.pool.factored,
+                    reused: self.pool.reused,
                 });
             }
             if !inner_converged && total >= self.opts.max_iterations {
@@ -503,6 +635,8 @@ impl NonsmoothCg {
                     history,
                     outer_steps: outer,
                     setups,
+                    factored: self.pool.factored,
+                    reused: self.pool.reused,
                 });
             }
             if !murty && !seen.insert(slack.clone()) {
