@@ -776,7 +776,7 @@ impl DdSolver {
     /// The factored subdomain operators, for a later set-up that reuses
     /// them ([`Self::new_reusing`]).
     pub fn into_operators(self) -> Vec<SubdomainOperator> {
-        self.subs.into_iter().map(|s| s.op).collect()
+        self.op.subs.into_iter().map(|s| s.op).collect()
     }
 
     /// Number of subdomains.
