@@ -20,6 +20,7 @@ use faer::sparse::linalg::cholesky::{
 };
 use faer::sparse::SparseColMat;
 use faer::{Conj, MatMut, Par, Side, Spec};
+use std::sync::Arc;
 
 /// A pivot `L_jj²` smaller than this fraction of `A_jj` means the matrix is
 /// numerically singular (a mechanism). Stiffness contrasts of 1e8 give
@@ -221,8 +222,11 @@ impl SparseCholesky {
         let mut this = SparseCholesky {
             n,
             l_values: vec![0.0f64; symbolic.len_val()],
-            symbolic: std::sync::Arc::new(symbolic),
-            pattern: std::sync::Arc::new(pattern_of(lower)),
+            pattern: match order.and_then(|o| o.analysis.as_ref()) {
+                Some(a) if Arc::ptr_eq(&a.symbolic, &symbolic) => a.pattern.clone(),
+                _ => Arc::new(pattern_of(lower)),
+            },
+            symbolic,
             scratch,
             scratch_cols: max_rhs,
             ordering,
@@ -413,6 +417,17 @@ pub struct EliminationOrder {
     fwd: Vec<usize>,
     inv: Vec<usize>,
     kind: OrderingKind,
+    /// The symbolic analysis the choice was made with, and the pattern it
+    /// is for: every factorization of that pattern in this order (a
+    /// singular subdomain's pivot scan and refactorizations) shares it
+    /// instead of repeating the analysis.
+    analysis: Option<Analysis>,
+}
+
+#[derive(Debug, Clone)]
+struct Analysis {
+    symbolic: Arc<SymbolicCholesky<usize>>,
+    pattern: Arc<(Vec<usize>, Vec<usize>)>,
 }
 
 /// Nested dissection is tried only from this many rows on: below it AMD's
@@ -460,27 +475,40 @@ impl EliminationOrder {
         lower: &SparseColMat<usize, f64>,
         rank: Option<&[usize]>,
         choice: OrderingChoice,
-    ) -> Result<(Self, SymbolicCholesky<usize>), FactorError> {
+    ) -> Result<(Self, Arc<SymbolicCholesky<usize>>), FactorError> {
         let n = lower.nrows();
         if choice == OrderingChoice::NestedDissection {
             let nd = Self::nd(lower, rank)?;
             let sym = symbolic_cholesky(lower, Some(&nd))?;
-            return Ok((nd, sym));
+            return Ok(nd.with_analysis(lower, sym));
         }
         let amd = Self::amd(lower, rank)?;
         let amd_sym = symbolic_cholesky(lower, Some(&amd))?;
         let nnz_a = lower.compute_nnz();
         if choice == OrderingChoice::Amd || n < ND_MIN_ROWS || (amd_sym.len_val() as f64) < ND_FILL_RATIO * nnz_a as f64
         {
-            return Ok((amd, amd_sym));
+            return Ok(amd.with_analysis(lower, amd_sym));
         }
         let nd = Self::nd(lower, rank)?;
         let nd_sym = symbolic_cholesky(lower, Some(&nd))?;
         if nd_sym.len_val() < amd_sym.len_val() {
-            Ok((nd, nd_sym))
+            Ok(nd.with_analysis(lower, nd_sym))
         } else {
-            Ok((amd, amd_sym))
+            Ok(amd.with_analysis(lower, amd_sym))
         }
+    }
+
+    /// Keeps `symbolic` (the analysis of `lower` in this order) for reuse.
+    fn with_analysis(
+        mut self,
+        lower: &SparseColMat<usize, f64>,
+        symbolic: Arc<SymbolicCholesky<usize>>,
+    ) -> (Self, Arc<SymbolicCholesky<usize>>) {
+        self.analysis = Some(Analysis {
+            symbolic: symbolic.clone(),
+            pattern: Arc::new(pattern_of(lower)),
+        });
+        (self, symbolic)
     }
 
     fn check_rank(n: usize, rank: Option<&[usize]>) -> Result<Vec<usize>, FactorError> {
@@ -513,7 +541,12 @@ impl EliminationOrder {
         for (k, &i) in fwd.iter().enumerate() {
             inv[i] = k;
         }
-        EliminationOrder { fwd, inv, kind }
+        EliminationOrder {
+            fwd,
+            inv,
+            kind,
+            analysis: None,
+        }
     }
 
     fn amd(lower: &SparseColMat<usize, f64>, rank: Option<&[usize]>) -> Result<Self, FactorError> {
@@ -572,7 +605,12 @@ impl EliminationOrder {
 fn symbolic_cholesky(
     lower: &SparseColMat<usize, f64>,
     order: Option<&EliminationOrder>,
-) -> Result<SymbolicCholesky<usize>, FactorError> {
+) -> Result<Arc<SymbolicCholesky<usize>>, FactorError> {
+    if let Some(a) = order.and_then(|o| o.analysis.as_ref()) {
+        if same_pattern(lower, &a.pattern) {
+            return Ok(a.symbolic.clone());
+        }
+    }
     let n = lower.nrows();
     let ordering = match order {
         None => SymmetricOrdering::Amd,
@@ -590,6 +628,7 @@ fn symbolic_cholesky(
         ordering,
         CholeskySymbolicParams::default(),
     )
+    .map(Arc::new)
     .map_err(|e| FactorError::Internal(format!("symbolic analysis: {e:?}")))
 }
 
@@ -723,6 +762,33 @@ pub fn sym_matvec(lower: &SparseColMat<usize, f64>, x: &[f64], y: &mut [f64]) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn tridiagonal(n: usize, coupled: bool) -> SparseColMat<usize, f64> {
+        let mut trip: Vec<(usize, usize, f64)> = (0..n).map(|i| (i, i, 4.0)).collect();
+        if coupled {
+            trip.extend((1..n).map(|i| (i, i - 1, -1.0)));
+        }
+        lower_csc(n, &trip).unwrap()
+    }
+
+    /// The analysis made while choosing the order is the one the
+    /// factorizations of that pattern use (no second analysis); another
+    /// pattern with the same order gets its own.
+    #[test]
+    fn factorizations_share_the_analysis_of_their_order() {
+        let k = tridiagonal(300, true);
+        let (order, sym) = EliminationOrder::choose(&k, None, OrderingChoice::Auto).unwrap();
+        let a = SparseCholesky::factor_ordered(&k, Some(&order), 1, PIVOT_RATIO).unwrap();
+        let b = SparseCholesky::factor_ordered(&k, Some(&order), 1, PIVOT_RATIO).unwrap();
+        assert!(Arc::ptr_eq(&a.symbolic, &sym) && Arc::ptr_eq(&b.symbolic, &sym));
+        assert!(Arc::ptr_eq(&a.pattern, &b.pattern));
+        let d = tridiagonal(300, false);
+        let mut c = SparseCholesky::factor_ordered(&d, Some(&order), 1, PIVOT_RATIO).unwrap();
+        assert!(!Arc::ptr_eq(&c.symbolic, &sym));
+        let mut x = vec![4.0; 300];
+        c.solve_in_place(&mut x);
+        assert!(x.iter().all(|&v| (v - 1.0).abs() < 1e-14));
+    }
 
     /// A dense SPD block of order `m` (diagonally dominant) with one extra
     /// row `zero` that has an explicit zero diagonal and no coupling: the
