@@ -994,6 +994,7 @@ fn dd_options(scene_file: &str) -> DdOptions {
         search_direction: scene.solver.search_direction,
         krylov: false,
         preconditioner: Default::default(),
+        interface_scaling: Default::default(),
     }
 }
 

@@ -6,11 +6,12 @@
 use crate::cg_stopping::{self, CgStopping};
 use crate::dd::DdSolver;
 use crate::error::Result;
+use faer::Mat;
 use crate::kernels::{self, Side};
 use crate::method::stopping::{ending, stalled};
 use crate::outcome::{Outcome, Status};
 use crate::result::HistoryEntry;
-use crate::scaling::{self, EntryWeights, InterfaceScaling};
+use crate::scaling::{self, DeluxeFace, EntryWeights, InterfaceScaling};
 use rayon::prelude::*;
 use std::time::Instant;
 
@@ -33,6 +34,13 @@ pub(crate) struct CgWorkspace {
     /// Per interface: weights of the preconditioner's scaled jump operator
     /// `B_D` ([`crate::scaling`], set by [`DdSolver::set_interface_scaling`]).
     w: Vec<EntryWeights>,
+    /// Per interface: the deluxe weights of its face (empty face unless the
+    /// scaling is [`InterfaceScaling::Deluxe`]); they replace `w` there.
+    deluxe: Vec<DeluxeFace>,
+    /// Per interface: `B_D,loᵀ r` and `B_D,hiᵀ r` (entry order), the
+    /// preconditioner's scaled residual on either side.
+    sl: Vec<Vec<f64>>,
+    sh: Vec<Vec<f64>>,
     /// Per subdomain: its parts of the stopping energies
     /// ([`DdSolver::cg_energies`]).
     energy: Vec<(f64, f64)>,
@@ -50,6 +58,9 @@ impl CgWorkspace {
             r: interface_sizes.clone().map(zeros).collect(),
             z: interface_sizes.clone().map(zeros).collect(),
             p: interface_sizes.clone().map(zeros).collect(),
+            sl: interface_sizes.clone().map(zeros).collect(),
+            sh: interface_sizes.clone().map(zeros).collect(),
+            deluxe: interface_sizes.clone().map(|_| DeluxeFace::default()).collect(),
             w: interface_sizes.map(|_| EntryWeights::default()).collect(),
             energy: vec![(0.0, 0.0); v.len()],
             v,
@@ -305,9 +316,13 @@ impl DdSolver {
     }
 
     /// Weights of the CG preconditioner's scaled jump operator `B_D`
-    /// ([`crate::scaling`]; default [`InterfaceScaling::Contrast`]). For
-    /// comparisons; later solves use them. Set-up cost only (allocates).
-    /// Without the CG workspace (another method) there is nothing to set.
+    /// ([`crate::scaling`]; the settings' `interface_scaling`, default
+    /// [`InterfaceScaling::default`]). For comparisons; later solves use
+    /// them. Set-up cost only (allocates); the deluxe blocks take one
+    /// application of the subdomain's Schur complement (of `K_E` with the
+    /// lumped preconditioner) per face dof, so the Dirichlet interior
+    /// problems must be factored first. Without the CG workspace (another
+    /// method) there is nothing to set.
     pub fn set_interface_scaling(&mut self, kind: InterfaceScaling) {
         let Some(ws) = self.cg.as_mut() else {
             return;
@@ -328,12 +343,78 @@ impl DdSolver {
             .map(|s| s.inv_mult.iter().map(|&w| (1.0 / w).round() as u32).collect())
             .collect();
         let diag: Vec<Vec<f64>> = match kind {
-            InterfaceScaling::Stiffness | InterfaceScaling::Contrast => {
+            InterfaceScaling::Stiffness | InterfaceScaling::Contrast | InterfaceScaling::Deluxe => {
                 self.subs.iter().map(|s| s.op.diagonal()).collect()
             }
             _ => Vec::new(),
         };
         ws.w = scaling::interface_weights(&entries, &self.dof_maps, &mult, &diag, kind);
+        // Face entries: dof shared by the two sides only.
+        let faces: Vec<Vec<u32>> = self
+            .ifaces
+            .iter()
+            .map(|it| {
+                let m = &mult[it.lo];
+                (0..it.lo_idx.len() as u32)
+                    .filter(|&j| kind == InterfaceScaling::Deluxe && m[it.lo_idx[j as usize] as usize] == 2)
+                    .collect()
+            })
+            .collect();
+        drop(entries);
+        if kind != InterfaceScaling::Deluxe {
+            ws.deluxe.iter_mut().for_each(|d| *d = DeluxeFace::default());
+            return;
+        }
+        // Face blocks of each subdomain's Schur complement, one column per
+        // face dof: `S_E e_l` restricted to the face.
+        let ifaces = &self.ifaces;
+        let blocks: Vec<Vec<Mat<f64>>> = self
+            .subs
+            .par_iter_mut()
+            .map(|s| {
+                let n = s.op.n();
+                let (mut x, mut y) = (vec![0.0; n], vec![0.0; n]);
+                s.ifaces
+                    .iter()
+                    .map(|&(i, is_lo)| {
+                        let it = &ifaces[i];
+                        let idx = if is_lo { &it.lo_idx } else { &it.hi_idx };
+                        let face = &faces[i];
+                        let mut b = Mat::<f64>::zeros(face.len(), face.len());
+                        for (k, &f) in face.iter().enumerate() {
+                            let l = idx[f as usize] as usize;
+                            x[l] = 1.0;
+                            match s.interior.as_mut() {
+                                Some(ip) => ip.apply_schur(&s.op, &mut x, &mut y),
+                                None => s.op.apply(&x, &mut y),
+                            }
+                            x[l] = 0.0;
+                            for (m, &g) in face.iter().enumerate() {
+                                b[(m, k)] = y[idx[g as usize] as usize];
+                            }
+                        }
+                        b
+                    })
+                    .collect()
+            })
+            .collect();
+        let mut side: Vec<[Option<&Mat<f64>>; 2]> = vec![[None, None]; self.ifaces.len()];
+        for (s, b) in self.subs.iter().zip(&blocks) {
+            for (&(i, is_lo), m) in s.ifaces.iter().zip(b) {
+                side[i][usize::from(!is_lo)] = Some(m);
+            }
+        }
+        ws.deluxe = faces
+            .into_par_iter()
+            .zip(side.par_iter())
+            .map(|(face, [lo, hi])| match (lo, hi) {
+                (Some(lo), Some(hi)) if !face.is_empty() => {
+                    // A failed eigensolve leaves the pointwise weights there.
+                    DeluxeFace::new(face, lo.as_ref(), hi.as_ref()).unwrap_or_default()
+                }
+                _ => DeluxeFace::default(),
+            })
+            .collect();
     }
 
     /// The energies of the CG stopping test ([`crate::cg_stopping`]) for
@@ -378,17 +459,31 @@ impl DdSolver {
     /// coarse step absorbs it); leaving it in `z` lets round-off grow there
     /// and break the iteration on long runs.
     fn precondition(&mut self, ws: &mut CgWorkspace) {
+        // B_D,Eᵀ r on either side of each interface: pointwise weights,
+        // the dense deluxe blocks on the faces that have them.
+        self.ifaces
+            .par_iter()
+            .zip(ws.r.par_iter().zip(ws.w.par_iter()))
+            .zip(ws.deluxe.par_iter_mut().zip(ws.sl.par_iter_mut().zip(ws.sh.par_iter_mut())))
+            .for_each(|((_, (r, w)), (dx, (sl, sh)))| {
+                for ((((a, b), &r), &wl), &wh) in sl.iter_mut().zip(sh.iter_mut()).zip(r).zip(&w.lo).zip(&w.hi) {
+                    *a = wl * r;
+                    *b = wh * r;
+                }
+                if !dx.face.is_empty() {
+                    dx.scale(r, sl, sh);
+                }
+            });
         let ifaces = &self.ifaces;
-        let (cr, cw) = (&ws.r, &ws.w);
+        let (sl, sh) = (&ws.sl, &ws.sh);
         self.subs.par_iter_mut().for_each(|s| {
             for &(i, is_lo) in &s.ifaces {
                 let it = &ifaces[i];
-                let (side, coef, w) = if is_lo {
-                    (Side::Lo, 1.0, &cw[i].lo)
+                if is_lo {
+                    kernels::scatter_add_runs(&mut s.g, Side::Lo, &it.runs, &sl[i], 1.0);
                 } else {
-                    (Side::Hi, -1.0, &cw[i].hi)
-                };
-                scaling::scatter_add_scaled_runs(&mut s.g, side, &it.runs, &cr[i], w, coef);
+                    kernels::scatter_add_runs(&mut s.g, Side::Hi, &it.runs, &sh[i], -1.0);
+                }
             }
             // s.r is free between global steps: K_E B_Eᵀ r (lumped) or
             // S_E B_Eᵀ r (Dirichlet) goes there.
@@ -403,9 +498,13 @@ impl DdSolver {
         let subs = &self.subs;
         self.ifaces
             .par_iter()
-            .zip(ws.z.par_iter_mut().zip(ws.w.par_iter()))
-            .for_each(|(it, (cz, w))| {
-                scaling::scaled_jump_runs(cz, &subs[it.lo].r, &w.lo, &subs[it.hi].r, &w.hi, &it.runs);
+            .zip(ws.z.par_iter_mut().zip(ws.w.par_iter().zip(ws.deluxe.par_iter_mut())))
+            .for_each(|(it, (cz, (w, dx)))| {
+                let (lo, hi) = (&subs[it.lo].r, &subs[it.hi].r);
+                scaling::scaled_jump_runs(cz, lo, &w.lo, hi, &w.hi, &it.runs);
+                if !dx.face.is_empty() {
+                    dx.jump(cz, lo, &it.lo_idx, hi, &it.hi_idx);
+                }
             });
         // Circulations of the redundant pair forces at cross points (zero
         // net force on every subdomain) are null directions too: project z
