@@ -380,14 +380,18 @@ impl DdSolver {
                         let it = &ifaces[i];
                         let idx = if is_lo { &it.lo_idx } else { &it.hi_idx };
                         let face = &faces[i];
+                        if let Some(ip) = s.interior.as_mut() {
+                            let rows: Vec<u32> = face.iter().map(|&f| idx[f as usize]).collect();
+                            // A failure (out of memory) leaves this face
+                            // without deluxe weights.
+                            return ip.schur_block(&s.op, &rows).unwrap_or_else(|_| Mat::zeros(0, 0));
+                        }
+                        // Lumped: the face block of K_E.
                         let mut b = Mat::<f64>::zeros(face.len(), face.len());
                         for (k, &f) in face.iter().enumerate() {
                             let l = idx[f as usize] as usize;
                             x[l] = 1.0;
-                            match s.interior.as_mut() {
-                                Some(ip) => ip.apply_schur(&s.op, &mut x, &mut y),
-                                None => s.op.apply(&x, &mut y),
-                            }
+                            s.op.apply(&x, &mut y);
                             x[l] = 0.0;
                             for (m, &g) in face.iter().enumerate() {
                                 b[(m, k)] = y[idx[g as usize] as usize];
@@ -408,7 +412,7 @@ impl DdSolver {
             .into_par_iter()
             .zip(side.par_iter())
             .map(|(face, [lo, hi])| match (lo, hi) {
-                (Some(lo), Some(hi)) if !face.is_empty() => {
+                (Some(lo), Some(hi)) if !face.is_empty() && lo.nrows() == face.len() && hi.nrows() == face.len() => {
                     // A failed eigensolve leaves the pointwise weights there.
                     DeluxeFace::new(face, lo.as_ref(), hi.as_ref()).unwrap_or_default()
                 }
