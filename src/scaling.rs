@@ -153,7 +153,9 @@ pub fn interface_weights(
     let rho = |s: usize, l: u32| -> f64 {
         match kind {
             InterfaceScaling::Stiffness => diag[s][l as usize].max(0.0),
-            InterfaceScaling::Contrast | InterfaceScaling::Deluxe if contrast[dofs[s][l as usize]] => diag[s][l as usize].max(0.0),
+            InterfaceScaling::Contrast | InterfaceScaling::Deluxe if contrast[dofs[s][l as usize]] => {
+                diag[s][l as usize].max(0.0)
+            }
             _ => 1.0,
         }
     };
@@ -254,7 +256,9 @@ impl DeluxeFace {
     /// get the multiplicity weights. `None` if the eigensolver fails.
     pub fn new(face: Vec<u32>, s_lo: MatRef<'_, f64>, s_hi: MatRef<'_, f64>) -> Option<DeluxeFace> {
         let n = face.len();
-        let sum = Mat::from_fn(n, n, |i, j| 0.5 * (s_lo[(i, j)] + s_lo[(j, i)] + s_hi[(i, j)] + s_hi[(j, i)]));
+        let sum = Mat::from_fn(n, n, |i, j| {
+            0.5 * (s_lo[(i, j)] + s_lo[(j, i)] + s_hi[(i, j)] + s_hi[(j, i)])
+        });
         let evd = sum.self_adjoint_eigen(faer::Side::Lower).ok()?;
         let (u, s) = (evd.U(), evd.S().column_vector());
         let smax = (0..n).map(|k| s[k].abs()).fold(0.0f64, f64::max);
@@ -398,6 +402,44 @@ mod tests {
         let w = interface_weights(&ifaces, &dofs, &mult, &diag, InterfaceScaling::Contrast);
         assert_eq!(w[0].lo, vec![1e4 / 10001.0, 0.5, 0.5]);
         assert_eq!(w[0].hi, vec![1.0 / 10001.0, 0.5, 0.5]);
+    }
+
+    #[test]
+    fn deluxe_face_weights() {
+        // 1×1 faces: the stiffness ratio of the two sides (lo side 3, hi 1:
+        // D_hi = 1/4); a face neither side holds is split evenly.
+        let d = DeluxeFace::new(
+            vec![0],
+            Mat::from_fn(1, 1, |_, _| 3.0).as_ref(),
+            Mat::from_fn(1, 1, |_, _| 1.0).as_ref(),
+        )
+        .unwrap();
+        assert!((d.d[0] - 0.25).abs() < 1e-15);
+        let z = Mat::<f64>::zeros(1, 1);
+        assert_eq!(DeluxeFace::new(vec![0], z.as_ref(), z.as_ref()).unwrap().d, vec![0.5]);
+        // 2×2 with coupling: (S_lo + S_hi) D_hi = S_hi.
+        let s_lo = Mat::from_fn(2, 2, |i, j| [[4.0, 1.0], [1.0, 3.0]][i][j]);
+        let s_hi = Mat::from_fn(2, 2, |i, j| [[1.0, -0.5], [-0.5, 2.0]][i][j]);
+        let mut f = DeluxeFace::new(vec![0, 2], s_lo.as_ref(), s_hi.as_ref()).unwrap();
+        let dm = Mat::from_fn(2, 2, |i, j| f.d[j * 2 + i]);
+        let res = (&s_lo + &s_hi) * &dm - &s_hi;
+        assert!(res.norm_max() < 1e-14, "{res:?}");
+        // scale: lo = D r_F, hi = r_F − D r_F on the face entries only.
+        let r = [1.0, 7.0, -2.0];
+        let (mut lo, mut hi) = ([9.0; 3], [9.0; 3]);
+        f.scale(&r, &mut lo, &mut hi);
+        let dr = [dm[(0, 0)] - 2.0 * dm[(0, 1)], dm[(1, 0)] - 2.0 * dm[(1, 1)]];
+        assert!((lo[0] - dr[0]).abs() < 1e-15 && (lo[2] - dr[1]).abs() < 1e-15 && lo[1] == 9.0);
+        assert!((hi[0] - (1.0 - dr[0])).abs() < 1e-15 && (hi[2] - (-2.0 - dr[1])).abs() < 1e-15);
+        // jump: z_F = D_hiᵀ y_lo − (I − D_hi)ᵀ y_hi, sides indexed apart.
+        let (ylo, yhi) = ([0.0, 1.0, 0.0, 2.0], [3.0, 0.0, -1.0]);
+        let mut z = [5.0; 3];
+        f.jump(&mut z, &ylo, &[1, 0, 3], &yhi, &[0, 0, 2]);
+        let want = |k: usize| {
+            let (a, b) = ([1.0, 2.0], [3.0, -1.0]);
+            (0..2).map(|i| dm[(i, k)] * (a[i] + b[i])).sum::<f64>() - b[k]
+        };
+        assert!((z[0] - want(0)).abs() < 1e-14 && (z[2] - want(1)).abs() < 1e-14 && z[1] == 5.0);
     }
 
     #[test]

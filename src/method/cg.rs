@@ -6,12 +6,12 @@
 use crate::cg_stopping::{self, CgStopping};
 use crate::dd::DdSolver;
 use crate::error::Result;
-use faer::Mat;
 use crate::kernels::{self, Side};
 use crate::method::stopping::{ending, stalled};
 use crate::outcome::{Outcome, Status};
 use crate::result::HistoryEntry;
 use crate::scaling::{self, DeluxeFace, EntryWeights, InterfaceScaling};
+use faer::Mat;
 use rayon::prelude::*;
 use std::time::Instant;
 
@@ -468,7 +468,11 @@ impl DdSolver {
         self.ifaces
             .par_iter()
             .zip(ws.r.par_iter().zip(ws.w.par_iter()))
-            .zip(ws.deluxe.par_iter_mut().zip(ws.sl.par_iter_mut().zip(ws.sh.par_iter_mut())))
+            .zip(
+                ws.deluxe
+                    .par_iter_mut()
+                    .zip(ws.sl.par_iter_mut().zip(ws.sh.par_iter_mut())),
+            )
             .for_each(|((_, (r, w)), (dx, (sl, sh)))| {
                 for ((((a, b), &r), &wl), &wh) in sl.iter_mut().zip(sh.iter_mut()).zip(r).zip(&w.lo).zip(&w.hi) {
                     *a = wl * r;
