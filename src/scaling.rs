@@ -25,6 +25,12 @@
 //! default, [`InterfaceScaling::Contrast`], uses the stiffness weights only
 //! at dofs whose sides differ by more than [`CONTRAST_THRESHOLD`] and the
 //! multiplicity elsewhere: 563 iterations on the tower, 120 on that grid.
+//!
+//! The default, [`InterfaceScaling::Deluxe`], replaces the pointwise
+//! weights on each interface's face by the dense ones of [`DeluxeFace`],
+//! built from the two subdomains' Schur complements: 60 iterations on that
+//! tower, 20/29/18 on the 24² grid with 4/16/64 subdomains (52/55/37 with
+//! contrast). Cross points keep the contrast weights.
 
 use crate::kernels::{Run, Side};
 use faer::{Mat, MatRef};
