@@ -81,6 +81,7 @@ fn multilevel(max_iterations: usize) -> DdOptions {
         search_direction: SearchDirection::Auto,
         krylov: false,
         preconditioner: Default::default(),
+        interface_scaling: Default::default(),
     }
 }
 

@@ -81,6 +81,37 @@ typedef enum NsddElementKind {
 } NsddElementKind;
 
 /**
+ * Weights of the interface CG's preconditioner across interfaces (values
+ * for `nsdd_options_set_interface_scaling`).
+ */
+typedef enum NsddInterfaceScaling {
+    /**
+     * Dense weights from the subdomains' Schur complements on each
+     * interface face (default): fewest iterations, across stiffness
+     * contrasts too; one Schur complement application per face dof at
+     * set-up.
+     */
+    NSDD_INTERFACE_SCALING_DELUXE = 0,
+    /**
+     * Multiplicity weights, diagonal-stiffness weights where the sides
+     * differ by more than 1000×.
+     */
+    NSDD_INTERFACE_SCALING_CONTRAST = 1,
+    /**
+     * `1/m` at a dof shared by `m` subdomains.
+     */
+    NSDD_INTERFACE_SCALING_MULTIPLICITY = 2,
+    /**
+     * Diagonal-stiffness weights everywhere.
+     */
+    NSDD_INTERFACE_SCALING_STIFFNESS = 3,
+    /**
+     * Unscaled.
+     */
+    NSDD_INTERFACE_SCALING_NONE = 4,
+} NsddInterfaceScaling;
+
+/**
  * Solution method (values for `nsdd_options_set_method`).
  */
 typedef enum NsddMethod {
@@ -463,6 +494,17 @@ enum NsddStatus nsdd_options_set_method(struct NsddOptions *options, uint32_t me
  */
 enum NsddStatus nsdd_options_set_preconditioner(struct NsddOptions *options,
                                                 uint32_t preconditioner);
+
+/**
+ * Sets the interface scaling of the `cg` preconditioner, overriding the
+ * scene's `[solver] interface_scaling`: one of `NsddInterfaceScaling` (0
+ * deluxe, 1 contrast, 2 multiplicity, 3 stiffness, 4 none); any other
+ * value is INVALID_ARGUMENT. Ignored by the other methods.
+ *
+ * # Safety
+ * `options` must be a live options handle.
+ */
+enum NsddStatus nsdd_options_set_interface_scaling(struct NsddOptions *options, uint32_t scaling);
 
 /**
  * Sets the automatic partitioner, overriding the scene's `[solver]

@@ -48,6 +48,9 @@ pub struct DdOptions {
     pub krylov: bool,
     /// Preconditioner of the CG (ignored by the stationary iteration).
     pub preconditioner: Preconditioner,
+    /// Weights of the CG preconditioner's scaled jump operator
+    /// ([`crate::scaling`]; ignored by the stationary iteration).
+    pub interface_scaling: InterfaceScaling,
 }
 
 impl DdOptions {
@@ -68,6 +71,7 @@ impl DdOptions {
             max_iterations: s.max_iterations,
             search_direction: s.search_direction,
             preconditioner: s.preconditioner,
+            interface_scaling: s.interface_scaling,
         })
     }
 }
@@ -306,6 +310,9 @@ pub struct DdStats {
     pub coarse_s: f64,
     /// Choice of `d` (power iteration on the interface operator).
     pub search_direction_s: f64,
+    /// Weights of the CG preconditioner (the deluxe blocks: one Schur
+    /// complement application per face dof).
+    pub scaling_s: f64,
 }
 
 /// The set-up DD solver: factorizations, macro space and coarse problem,
@@ -640,6 +647,7 @@ impl DdSolver {
                 0.0
             },
             search_direction_s: 0.0,
+            scaling_s: 0.0,
         };
         let forces = ifaces.iter().map(|it| vec![0.0; it.lo_idx.len()]).collect();
         let mut solver = DdSolver {
@@ -658,7 +666,6 @@ impl DdSolver {
                 solver.op.interface_sizes(),
                 solver.op.subs.iter().map(|s| s.v.len()),
             ));
-            solver.set_interface_scaling(InterfaceScaling::default());
             if solver.opts.preconditioner == Preconditioner::Dirichlet {
                 let t = Instant::now();
                 solver.op.subs.par_iter_mut().try_for_each(|st| -> Result<()> {
@@ -667,6 +674,10 @@ impl DdSolver {
                 })?;
                 solver.stats.factor_s += t.elapsed().as_secs_f64();
             }
+            // After the interior problems: the deluxe blocks apply them.
+            let t = Instant::now();
+            solver.set_interface_scaling(solver.opts.interface_scaling);
+            solver.stats.scaling_s = t.elapsed().as_secs_f64();
         }
         let t_d = Instant::now();
         solver.d = match solver.opts.search_direction {

@@ -389,6 +389,18 @@ impl SparseCholesky {
         }
     }
 
+    /// Resizes the solve scratch for blocks of `k` columns (set-up only:
+    /// batched solves, then back to the iteration's width).
+    pub fn set_max_rhs(&mut self, k: usize) -> Result<(), FactorError> {
+        let k = k.max(1);
+        if k != self.scratch_cols {
+            let req = self.symbolic.solve_in_place_scratch::<f64>(k, Par::Seq);
+            self.scratch = MemBuffer::try_new(req).map_err(|_| FactorError::Internal("out of memory".into()))?;
+            self.scratch_cols = k;
+        }
+        Ok(())
+    }
+
     /// Solves for a column-major block stored in a slice of `n * k` values.
     pub fn solve_columns(&mut self, data: &mut [f64], k: usize) {
         let n = self.n;

@@ -18,7 +18,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use nsdd::error::{Error, Result};
 use nsdd::generate;
 use nsdd::model::Model;
-use nsdd::scene::{Method, Partitioner, Preconditioner, Scene, SearchDirection};
+use nsdd::scene::{InterfaceScaling, Method, Partitioner, Preconditioner, Scene, SearchDirection};
 use nsdd::solve::{solve_with_progress, SolveOptions};
 use nsdd::vtk;
 use report::{AccuracyOptions, Event, ScalingOptions};
@@ -97,6 +97,10 @@ fn parse_preconditioner(s: &str) -> std::result::Result<Preconditioner, String> 
     s.parse()
 }
 
+fn parse_interface_scaling(s: &str) -> std::result::Result<InterfaceScaling, String> {
+    s.parse()
+}
+
 fn parse_d(s: &str) -> std::result::Result<SearchDirection, String> {
     let d: SearchDirection = s.parse()?;
     match d {
@@ -168,6 +172,9 @@ struct SolveArgs {
     /// Preconditioner of cg: dirichlet (default: interior solves, fewer iterations) or lumped
     #[arg(long, value_name = "P", value_parser = parse_preconditioner)]
     preconditioner: Option<Preconditioner>,
+    /// Weights of cg's preconditioner across interfaces: deluxe (default), contrast, multiplicity, stiffness or none
+    #[arg(long, value_name = "S", value_parser = parse_interface_scaling)]
+    interface_scaling: Option<InterfaceScaling>,
     /// Write the result JSON here (also when not converged: its `status` says why; not after an error or divergence)
     #[arg(long, value_name = "FILE")]
     out: Option<PathBuf>,
@@ -502,6 +509,9 @@ fn cmd_solve(a: SolveArgs) -> Result<i32> {
     }
     if let Some(p) = a.preconditioner {
         opts.preconditioner = p;
+    }
+    if let Some(s) = a.interface_scaling {
+        opts.interface_scaling = s;
     }
 
     let mut bar = if opts.method == Method::Direct {

@@ -44,6 +44,7 @@ use crate::model::Model;
 use crate::model::FIXED;
 use crate::partition::Partition;
 use crate::result::HistoryEntry;
+use crate::scaling::InterfaceScaling;
 use crate::scene::{Preconditioner, SearchDirection};
 use crate::subdomain::SubdomainOperator;
 use std::collections::{HashMap, HashSet};
@@ -102,6 +103,7 @@ pub struct NonsmoothOptions {
     /// Budget of interface-operator applications over all outer steps.
     pub max_iterations: usize,
     pub preconditioner: Preconditioner,
+    pub interface_scaling: InterfaceScaling,
 }
 
 /// One solved state of the nonsmooth CG.
@@ -384,6 +386,7 @@ impl NonsmoothCg {
             coarse: true,
             krylov: true,
             preconditioner: self.opts.preconditioner,
+            interface_scaling: self.opts.interface_scaling,
             tolerance: self.opts.tolerance,
             max_iterations: self.opts.max_iterations,
             search_direction: SearchDirection::Auto,

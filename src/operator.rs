@@ -21,7 +21,7 @@ use crate::coarse::CoarseProblem;
 use crate::comm::{Communicator, Threads};
 use crate::dd::{IfaceState, SubState};
 use crate::kernels::{self, Side};
-use crate::scaling::{self, EntryWeights};
+use crate::scaling::{self, DeluxeFace, EntryWeights};
 use rayon::prelude::*;
 
 /// The set-up interface operator (see the module documentation), generic
@@ -238,17 +238,43 @@ impl<C: Communicator> InterfaceOperator<C> {
     /// at zero), then the macro part removed. `range(P)` is in the null
     /// space of the CG operator (the coarse step absorbs it); leaving it in
     /// `z` lets round-off grow there and break the iteration on long runs.
-    pub fn precondition(&mut self, r: &[Vec<f64>], w: &[EntryWeights], z: &mut [Vec<f64>]) {
+    ///
+    /// `w` are the pointwise weights of `B_D`; `deluxe` the dense weights of
+    /// the faces that have them (they replace `w` there); `sl`, `sh` scratch
+    /// of the interface sizes (`B_D,loᵀ r`, `B_D,hiᵀ r`).
+    pub fn precondition(
+        &mut self,
+        r: &[Vec<f64>],
+        w: &[EntryWeights],
+        deluxe: &mut [DeluxeFace],
+        sl: &mut [Vec<f64>],
+        sh: &mut [Vec<f64>],
+        z: &mut [Vec<f64>],
+    ) {
+        // B_D,Eᵀ r on either side of each interface (interface vectors,
+        // held by both sides: no communication).
+        r.par_iter()
+            .zip(w.par_iter())
+            .zip(deluxe.par_iter_mut().zip(sl.par_iter_mut().zip(sh.par_iter_mut())))
+            .for_each(|((r, w), (dx, (sl, sh)))| {
+                for ((((a, b), &r), &wl), &wh) in sl.iter_mut().zip(sh.iter_mut()).zip(r).zip(&w.lo).zip(&w.hi) {
+                    *a = wl * r;
+                    *b = wh * r;
+                }
+                if !dx.face.is_empty() {
+                    dx.scale(r, sl, sh);
+                }
+            });
         let ifaces = &self.ifaces;
+        let (sl, sh) = (&*sl, &*sh);
         self.subs.par_iter_mut().for_each(|s| {
             for &(i, is_lo) in &s.ifaces {
                 let it = &ifaces[i];
-                let (side, coef, w) = if is_lo {
-                    (Side::Lo, 1.0, &w[i].lo)
+                if is_lo {
+                    kernels::scatter_add_runs(&mut s.g, Side::Lo, &it.runs, &sl[i], 1.0);
                 } else {
-                    (Side::Hi, -1.0, &w[i].hi)
-                };
-                scaling::scatter_add_scaled_runs(&mut s.g, side, &it.runs, &r[i], w, coef);
+                    kernels::scatter_add_runs(&mut s.g, Side::Hi, &it.runs, &sh[i], -1.0);
+                }
             }
             // s.r is free between global steps: K_E B_Eᵀ r (lumped) or
             // S_E B_Eᵀ r (Dirichlet) goes there.
@@ -268,6 +294,22 @@ impl<C: Communicator> InterfaceOperator<C> {
                 scaling::scaled_jump_runs(cz, lo, &w[i].lo, hi, &w[i].hi, &ifaces[i].runs);
             },
         );
+        // The deluxe faces: `D_hiᵀ y_lo − D_loᵀ y_hi` from the same traces.
+        self.comm.neighbour_traces(
+            &self.subs,
+            |s| &s.r,
+            deluxe,
+            |i, dx, lo, hi| {
+                if !dx.face.is_empty() {
+                    dx.face_jump(lo, &ifaces[i].lo_idx, hi, &ifaces[i].hi_idx);
+                }
+            },
+        );
+        z.par_iter_mut().zip(deluxe.par_iter()).for_each(|(cz, dx)| {
+            if !dx.face.is_empty() {
+                dx.write_face(cz);
+            }
+        });
         // Circulations of the redundant pair forces at cross points (zero
         // net force on every subdomain) are null directions too: project z
         // onto the differences of subdomain forces, `z ← (B_lo z − B_hi z)/m`
@@ -436,6 +478,7 @@ mod tests {
     use crate::dd::{DdOptions, DdSolver};
     use crate::generate::{grid, GridParams};
     use crate::model::Model;
+    use crate::scaling::InterfaceScaling;
     use crate::settings::{Preconditioner, SearchDirection};
     use crate::solve::decompose;
 
@@ -520,6 +563,7 @@ mod tests {
             search_direction: SearchDirection::Auto,
             krylov: true,
             preconditioner: Preconditioner::Dirichlet,
+            interface_scaling: InterfaceScaling::Deluxe,
         };
         DdSolver::new(&model, &dec, opts).unwrap()
     }
@@ -530,7 +574,9 @@ mod tests {
 
     #[test]
     fn ghost_buffers_give_the_same_bits_as_threads() {
-        let mut local = solver().op;
+        let mut set_up = solver();
+        let ws = set_up.cg.take().expect("a cg set-up has its workspace");
+        let mut local = set_up.op;
         let InterfaceOperator {
             subs,
             ifaces,
@@ -587,17 +633,15 @@ mod tests {
         local.force_stage(&mut fa, 0.3);
         ghost.force_stage(&mut fb, 0.3);
         assert!(fa.iter().zip(&fb).all(|(a, b)| same(a, b)));
-        let w: Vec<EntryWeights> = sizes
-            .iter()
-            .map(|&n| EntryWeights {
-                lo: vec![0.5; n],
-                hi: vec![0.5; n],
-            })
-            .collect();
+        // The preconditioner with the set-up's weights: deluxe on the faces,
+        // pointwise at the cross points.
+        assert!(ws.deluxe.iter().any(|d| !d.face.is_empty()));
+        let (mut da, mut db) = (ws.deluxe.clone(), ws.deluxe.clone());
+        let (mut sla, mut sha, mut slb, mut shb) = (vec_of(0), vec_of(0), vec_of(0), vec_of(0));
         let r = vec_of(3);
         let (mut za, mut zb) = (vec_of(0), vec_of(0));
-        local.precondition(&r, &w, &mut za);
-        ghost.precondition(&r, &w, &mut zb);
+        local.precondition(&r, &ws.w, &mut da, &mut sla, &mut sha, &mut za);
+        ghost.precondition(&r, &ws.w, &mut db, &mut slb, &mut shb, &mut zb);
         assert!(za.iter().zip(&zb).all(|(a, b)| same(a, b)));
         assert!(za.iter().flatten().all(|x| x.is_finite()) && za.iter().flatten().any(|&x| x != 0.0));
         assert_eq!(local.dot(&r, &za).to_bits(), ghost.dot(&r, &zb).to_bits());

@@ -492,6 +492,7 @@ fn method_options(
         max_iterations,
         search_direction: d,
         preconditioner,
+        interface_scaling: Default::default(),
         partitioner,
     }
 }

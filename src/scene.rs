@@ -76,7 +76,9 @@ impl Effects {
     }
 }
 
-pub use crate::settings::{Method, MethodConfig, Partitioner, Preconditioner, SearchDirection, SolverSettings};
+pub use crate::settings::{
+    InterfaceScaling, Method, MethodConfig, Partitioner, Preconditioner, SearchDirection, SolverSettings,
+};
 
 /// `[nodes]`: columnar coordinates.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]

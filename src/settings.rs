@@ -5,6 +5,7 @@
 //! iteration ([`Method::config`]).
 
 use crate::error::{Error, Result};
+pub use crate::scaling::InterfaceScaling;
 use serde::{Deserialize, Serialize};
 
 /// Solution method.
@@ -156,6 +157,10 @@ pub struct SolverSettings {
     /// Preconditioner of `cg` (ignored by the other methods).
     #[serde(default)]
     pub preconditioner: Preconditioner,
+    /// Weights of the `cg` preconditioner across interfaces (ignored by the
+    /// other methods). Not written when it is the default.
+    #[serde(default, skip_serializing_if = "InterfaceScaling::is_default")]
+    pub interface_scaling: InterfaceScaling,
     /// Automatic partition into `subdomains` (ignored when the elements
     /// carry their subdomain). Not written when it is the default, so that
     /// scenes stay readable by versions without the field.
@@ -231,6 +236,7 @@ impl Default for SolverSettings {
             max_iterations: default_max_iterations(),
             search_direction: SearchDirection::Auto,
             preconditioner: Preconditioner::default(),
+            interface_scaling: InterfaceScaling::default(),
             partitioner: Partitioner::default(),
         }
     }

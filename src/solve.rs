@@ -148,6 +148,7 @@ pub fn prepare(model: &Model, scene: &Scene, opts: &SolveOptions) -> Result<Prep
                     tolerance: opts.tolerance,
                     max_iterations: opts.max_iterations,
                     preconditioner: opts.preconditioner,
+                    interface_scaling: opts.interface_scaling,
                 },
             )?))
         }

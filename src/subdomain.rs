@@ -538,7 +538,79 @@ impl InteriorProblem {
     pub fn nnz_l(&self) -> usize {
         self.chol.as_ref().map_or(0, |c| c.nnz_l())
     }
+
+    /// The principal block `S_E[rows, rows]` of the Schur complement for
+    /// interface dofs `rows` (local; the subdomain's other interface dofs
+    /// held at zero): `K_FF − K_FI K_ii⁻¹ K_IF`, with `K_IF` read off the
+    /// stored triangle in one pass and the interior solves batched
+    /// ([`SCHUR_BLOCK_RHS`] columns at a time). Set-up only (allocates).
+    pub fn schur_block(&mut self, op: &SubdomainOperator, rows: &[u32]) -> Result<Mat<f64>> {
+        let n = op.n();
+        let nf = rows.len();
+        let mut fpos = vec![u32::MAX; n];
+        for (k, &l) in rows.iter().enumerate() {
+            fpos[l as usize] = k as u32;
+        }
+        let mut ipos = vec![u32::MAX; n];
+        for (k, &l) in self.interior.iter().enumerate() {
+            ipos[l as usize] = k as u32;
+        }
+        let mut s = Mat::<f64>::zeros(nf, nf);
+        // K_IF by columns: (interior row, value).
+        let mut kif: Vec<Vec<(u32, f64)>> = vec![Vec::new(); nf];
+        let a = op.stiffness.as_ref();
+        let mut add = |r: usize, c: usize, v: f64| {
+            let fc = fpos[c];
+            if fc == u32::MAX {
+                return;
+            }
+            if fpos[r] != u32::MAX {
+                s[(fpos[r] as usize, fc as usize)] += v;
+            } else if ipos[r] != u32::MAX {
+                kif[fc as usize].push((ipos[r], v));
+            }
+        };
+        for j in 0..n {
+            for (i, &v) in a.row_idx_of_col(j).zip(a.val_of_col(j)) {
+                add(i, j, v);
+                if i != j {
+                    add(j, i, v);
+                }
+            }
+        }
+        let Some(chol) = self.chol.as_mut() else {
+            return Ok(s);
+        };
+        let ni = self.interior.len();
+        let width = SCHUR_BLOCK_RHS.min(nf.max(1));
+        let internal = |e: FactorError| Error::Numerical(format!("subdomain {}: {e:?}", op.id));
+        chol.set_max_rhs(width).map_err(internal)?;
+        let mut x = vec![0.0; ni * width];
+        for c0 in (0..nf).step_by(width) {
+            let w = width.min(nf - c0);
+            x[..ni * w].iter_mut().for_each(|v| *v = 0.0);
+            for (c, col) in kif[c0..c0 + w].iter().enumerate() {
+                for &(i, v) in col {
+                    x[c * ni + i as usize] += v;
+                }
+            }
+            chol.solve_columns(&mut x[..ni * w], w);
+            // S[a, c] −= K_IF[:, a] · X[:, c]
+            for (a, col) in kif.iter().enumerate() {
+                for c in 0..w {
+                    let xc = &x[c * ni..(c + 1) * ni];
+                    let dot: f64 = col.iter().map(|&(i, v)| v * xc[i as usize]).sum();
+                    s[(a, c0 + c)] -= dot;
+                }
+            }
+        }
+        chol.set_max_rhs(1).map_err(internal)?;
+        Ok(s)
+    }
 }
+
+/// Columns per batched interior solve of [`InteriorProblem::schur_block`].
+pub const SCHUR_BLOCK_RHS: usize = 32;
 
 /// Orthonormal basis of the column span of `a`, dropping directions whose
 /// singular value is below `rtol` times the largest (rank revealing).

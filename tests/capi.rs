@@ -11,7 +11,7 @@
 use nsdd::capi::*;
 use nsdd::dd::{DdOptions, DdProblem, DdSolver, NO_DOF};
 use nsdd::model::Model;
-use nsdd::scene::{Method, Preconditioner, Scene};
+use nsdd::scene::{InterfaceScaling, Method, Preconditioner, Scene};
 use nsdd::solve::{decompose, solve, SolveOptions};
 use std::ffi::{c_char, CStr, CString};
 use std::path::PathBuf;
@@ -877,6 +877,32 @@ fn scene_level_cg_matches_rust_api_bit_for_bit() {
             NsddStatus::InvalidArgument,
             "preconditioner",
         );
+        // Every interface scaling, bit for bit as in Rust (lumped here).
+        for (k, code) in [
+            (InterfaceScaling::Deluxe, NsddInterfaceScaling::Deluxe),
+            (InterfaceScaling::Contrast, NsddInterfaceScaling::Contrast),
+            (InterfaceScaling::Multiplicity, NsddInterfaceScaling::Multiplicity),
+            (InterfaceScaling::Stiffness, NsddInterfaceScaling::Stiffness),
+            (InterfaceScaling::None, NsddInterfaceScaling::None),
+        ] {
+            opts.interface_scaling = k;
+            let want = solve(&big, &opts).unwrap();
+            ok(nsdd_options_set_interface_scaling(o, code as u32));
+            let (r, u) = solve_displacements(s, o);
+            let wu: Vec<f64> = want.displacements.iter().flatten().copied().collect();
+            assert_eq!(bits(&u), bits(&wu), "{k:?}");
+            nsdd_result_destroy(r);
+        }
+        expect_err(
+            nsdd_options_set_interface_scaling(o, 5),
+            NsddStatus::InvalidArgument,
+            "interface_scaling",
+        );
+        opts.interface_scaling = InterfaceScaling::default();
+        ok(nsdd_options_set_interface_scaling(
+            o,
+            NsddInterfaceScaling::Deluxe as u32,
+        ));
         nsdd_scene_destroy(s);
         let grid = cstr(root().join("scenes/grid-8x8.toml").to_str().unwrap());
         ok(nsdd_scene_from_file(grid.as_ptr(), &mut s));
@@ -994,6 +1020,7 @@ fn dd_options(scene_file: &str) -> DdOptions {
         search_direction: scene.solver.search_direction,
         krylov: false,
         preconditioner: Default::default(),
+        interface_scaling: Default::default(),
     }
 }
 

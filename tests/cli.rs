@@ -415,8 +415,9 @@ fn unconverged_solve_writes_result_and_exits_5() {
 }
 
 /// The README's tower with cg on 16 subdomains gives up (stalled) long
-/// before its iteration limit (539 iterations; with 4 it converges since
-/// issue 18's scaled preconditioner); the result and the message say why, and a
+/// before its iteration limit (372 iterations with the deluxe scaling, 539
+/// with contrast; with 4 it converges since issue 18's scaled
+/// preconditioner); the result and the message say why, and a
 /// tiny limit is reported as such.
 #[test]
 fn unconverged_solve_names_its_stop_reason() {
@@ -709,6 +710,38 @@ fn cg_preconditioner_flag() {
         iterations.push(r["iterations"].as_u64().unwrap());
     }
     assert_ne!(iterations[0], iterations[1]);
+    // --interface-scaling reaches it too: each value matches the direct
+    // solution, deluxe (the default) in fewer iterations than contrast.
+    let mut its = Vec::new();
+    for k in ["deluxe", "contrast", "multiplicity"] {
+        let out_k = d.join(format!("{k}.json"));
+        ok(&nsdd(&[
+            "solve",
+            s(&scene),
+            "--method",
+            "cg",
+            "--subdomains",
+            "4",
+            "--tolerance",
+            "1e-9",
+            "--interface-scaling",
+            k,
+            "--out",
+            s(&out_k),
+        ]));
+        let r = read_json(&out_k);
+        assert_matches(&r, &rd, 1e-7, k);
+        its.push(r["iterations"].as_u64().unwrap());
+    }
+    assert_eq!(its[0], iterations[0], "deluxe is the default");
+    assert!(its[0] < its[1], "deluxe {} vs contrast {}", its[0], its[1]);
+    let out = nsdd(&["solve", s(&scene), "--method", "cg", "--interface-scaling", "rho"]);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(
+        text(&out.stderr).contains("none, multiplicity, stiffness, contrast or deluxe"),
+        "{}",
+        text(&out.stderr)
+    );
     let out = nsdd(&["solve", s(&scene), "--method", "cg", "--preconditioner", "jacobi"]);
     assert_eq!(out.status.code(), Some(2));
     assert!(

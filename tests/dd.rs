@@ -130,6 +130,7 @@ fn monolevel_solves_singular_subdomains_with_the_natural_coarse_space() {
                 search_direction: SearchDirection::Auto,
                 krylov: false,
                 preconditioner: Default::default(),
+                interface_scaling: Default::default(),
             },
         )
         .unwrap()
@@ -164,6 +165,7 @@ fn several_load_cases_reuse_one_setup() {
             search_direction: SearchDirection::Auto,
             krylov: false,
             preconditioner: Default::default(),
+            interface_scaling: Default::default(),
         },
     )
     .unwrap();
@@ -401,6 +403,7 @@ fn interface_cg_refuses_unilateral_cables() {
         max_iterations: 100,
         search_direction: SearchDirection::Auto,
         preconditioner: Preconditioner::Dirichlet,
+        interface_scaling: Default::default(),
     };
     match DdSolver::new(&model, &dec, o) {
         Err(Error::MethodNotApplicable(m)) => assert!(m.contains("unilateral") && m.contains("multilevel"), "{m}"),
@@ -431,6 +434,7 @@ fn large_plate_coarse_problem_stays_exact() {
             search_direction: SearchDirection::Auto,
             krylov: true,
             preconditioner: Default::default(),
+            interface_scaling: Default::default(),
         },
     )
     .unwrap();

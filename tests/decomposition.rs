@@ -37,6 +37,7 @@ fn multilevel(model: &Model, dec: &Decomposition) -> DdSolver {
             search_direction: SearchDirection::Auto,
             krylov: false,
             preconditioner: Default::default(),
+            interface_scaling: Default::default(),
         },
     )
     .unwrap()

@@ -58,6 +58,7 @@ fn extra_iterations_allocate_nothing() {
             search_direction: SearchDirection::Auto,
             krylov,
             preconditioner,
+            interface_scaling: Default::default(),
         };
         let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();
         pool.install(|| {

@@ -339,6 +339,7 @@ fn unchanged_subdomains_are_not_refactored() {
             tolerance: tol,
             max_iterations: 100_000,
             preconditioner: Default::default(),
+            interface_scaling: Default::default(),
         },
     )
     .unwrap();

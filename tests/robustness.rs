@@ -740,6 +740,7 @@ fn floating_subdomains_match_direct() {
             search_direction: SearchDirection::Auto,
             krylov: false,
             preconditioner: Default::default(),
+            interface_scaling: Default::default(),
         },
     )
     .unwrap();
@@ -820,6 +821,7 @@ fn resolving_reuses_factorizations_bit_identically() {
         search_direction: SearchDirection::Auto,
         krylov: false,
         preconditioner: Default::default(),
+        interface_scaling: Default::default(),
     };
     let mut dd = DdSolver::new(&model, &dec, o.clone()).unwrap();
     let f = model.load_cases[0].clone();
@@ -1320,6 +1322,7 @@ fn solve_options_given_in_rust_are_checked_like_the_scene() {
             max_iterations,
             search_direction,
             preconditioner: Default::default(),
+            interface_scaling: Default::default(),
             partitioner: Default::default(),
         };
         match solve(&scene, &o) {

@@ -141,6 +141,7 @@ fn builder_scene() -> Scene {
         max_iterations: 77,
         search_direction: SearchDirection::Value(12.5),
         preconditioner: nsdd::scene::Preconditioner::Lumped,
+        interface_scaling: nsdd::scene::InterfaceScaling::Contrast,
         partitioner: nsdd::scene::Partitioner::Metis,
     });
     b.build_validated().unwrap()

@@ -24,7 +24,9 @@ use crate::dd::DdOptions;
 use crate::error::Error;
 use crate::outcome::Status;
 use crate::result::SolveResult;
-use crate::scene::{ElementKind, Method, Nodes, Preconditioner, Scene, SearchDirection, SolverSettings};
+use crate::scene::{
+    ElementKind, InterfaceScaling, Method, Nodes, Preconditioner, Scene, SearchDirection, SolverSettings,
+};
 use crate::solve::{solve, SolveOptions};
 use std::cell::RefCell;
 use std::ffi::{c_char, CStr, CString};
@@ -90,6 +92,27 @@ pub enum NsddPreconditioner {
     Dirichlet = 0,
     /// The subdomain stiffness on its interface dofs; no extra factorization.
     Lumped = 1,
+}
+
+/// Weights of the interface CG's preconditioner across interfaces (values
+/// for `nsdd_options_set_interface_scaling`).
+#[repr(C)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum NsddInterfaceScaling {
+    /// Dense weights from the subdomains' Schur complements on each
+    /// interface face (default): fewest iterations, across stiffness
+    /// contrasts too; one Schur complement application per face dof at
+    /// set-up.
+    Deluxe = 0,
+    /// Multiplicity weights, diagonal-stiffness weights where the sides
+    /// differ by more than 1000×.
+    Contrast = 1,
+    /// `1/m` at a dof shared by `m` subdomains.
+    Multiplicity = 2,
+    /// Diagonal-stiffness weights everywhere.
+    Stiffness = 3,
+    /// Unscaled.
+    None = 4,
 }
 
 /// Why a solve stopped (`nsdd_result_stop_reason`).

@@ -422,6 +422,33 @@ pub unsafe extern "C" fn nsdd_options_set_preconditioner(options: *mut NsddOptio
     })
 }
 
+/// Sets the interface scaling of the `cg` preconditioner, overriding the
+/// scene's `[solver] interface_scaling`: one of `NsddInterfaceScaling` (0
+/// deluxe, 1 contrast, 2 multiplicity, 3 stiffness, 4 none); any other
+/// value is INVALID_ARGUMENT. Ignored by the other methods.
+///
+/// # Safety
+/// `options` must be a live options handle.
+#[unsafe(no_mangle)]
+pub unsafe extern "C" fn nsdd_options_set_interface_scaling(options: *mut NsddOptions, scaling: u32) -> NsddStatus {
+    ffi_guard(|| {
+        let o = unsafe { handle_mut(options, "options")? };
+        o.opts.interface_scaling = match scaling {
+            0 => InterfaceScaling::Deluxe,
+            1 => InterfaceScaling::Contrast,
+            2 => InterfaceScaling::Multiplicity,
+            3 => InterfaceScaling::Stiffness,
+            4 => InterfaceScaling::None,
+            _ => {
+                return Err(invalid(format!(
+                    "interface_scaling = {scaling}: expected 0 (deluxe), 1 (contrast), 2 (multiplicity), 3 (stiffness) or 4 (none)"
+                )))
+            }
+        };
+        Ok(())
+    })
+}
+
 /// Sets the automatic partitioner, overriding the scene's `[solver]
 /// partitioner`: 0 coordinate bisection, 1 METIS k-way; any other value is
 /// INVALID_ARGUMENT. Ignored by the direct method and when the scene's

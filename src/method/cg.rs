@@ -9,7 +9,8 @@ use crate::error::Result;
 use crate::method::stopping::{ending, stalled};
 use crate::outcome::{Outcome, Status};
 use crate::result::HistoryEntry;
-use crate::scaling::{self, EntryWeights, InterfaceScaling};
+use crate::scaling::{self, DeluxeFace, EntryWeights, InterfaceScaling};
+use faer::Mat;
 use rayon::prelude::*;
 use std::time::Instant;
 
@@ -31,7 +32,14 @@ pub(crate) struct CgWorkspace {
     v: Vec<Vec<f64>>,
     /// Per interface: weights of the preconditioner's scaled jump operator
     /// `B_D` ([`crate::scaling`], set by [`DdSolver::set_interface_scaling`]).
-    w: Vec<EntryWeights>,
+    pub(crate) w: Vec<EntryWeights>,
+    /// Per interface: the deluxe weights of its face (empty face unless the
+    /// scaling is [`InterfaceScaling::Deluxe`]); they replace `w` there.
+    pub(crate) deluxe: Vec<DeluxeFace>,
+    /// Per interface: `B_D,loᵀ r` and `B_D,hiᵀ r` (entry order), the
+    /// preconditioner's scaled residual on either side.
+    sl: Vec<Vec<f64>>,
+    sh: Vec<Vec<f64>>,
     /// Per subdomain: its parts of the stopping energies
     /// ([`DdSolver::cg_energies`]).
     energy: Vec<(f64, f64)>,
@@ -49,6 +57,9 @@ impl CgWorkspace {
             r: interface_sizes.clone().map(zeros).collect(),
             z: interface_sizes.clone().map(zeros).collect(),
             p: interface_sizes.clone().map(zeros).collect(),
+            sl: interface_sizes.clone().map(zeros).collect(),
+            sh: interface_sizes.clone().map(zeros).collect(),
+            deluxe: interface_sizes.clone().map(|_| DeluxeFace::default()).collect(),
             w: interface_sizes.map(|_| EntryWeights::default()).collect(),
             energy: vec![(0.0, 0.0); v.len()],
             v,
@@ -211,7 +222,7 @@ impl DdSolver {
                 continue;
             }
             best = best.min(indicator);
-            self.op.precondition(&ws.r, &ws.w, &mut ws.z);
+            self.op.precondition(&ws.r, &ws.w, &mut ws.deluxe, &mut ws.sl, &mut ws.sh, &mut ws.z);
             let rz_new = self.op.dot(&ws.r, &ws.z);
             let beta = rz_new / rz;
             rz = rz_new;
@@ -269,7 +280,7 @@ impl DdSolver {
         for (cr, it) in ws.r.iter_mut().zip(&self.op.ifaces) {
             cr.copy_from_slice(&it.jump);
         }
-        self.op.precondition(&ws.r, &ws.w, &mut ws.z);
+        self.op.precondition(&ws.r, &ws.w, &mut ws.deluxe, &mut ws.sl, &mut ws.sh, &mut ws.z);
         for (cp, cz) in ws.p.iter_mut().zip(&ws.z) {
             cp.copy_from_slice(cz);
         }
@@ -294,9 +305,13 @@ impl DdSolver {
     }
 
     /// Weights of the CG preconditioner's scaled jump operator `B_D`
-    /// ([`crate::scaling`]; default [`InterfaceScaling::Contrast`]). For
-    /// comparisons; later solves use them. Set-up cost only (allocates).
-    /// Without the CG workspace (another method) there is nothing to set.
+    /// ([`crate::scaling`]; the settings' `interface_scaling`, default
+    /// [`InterfaceScaling::default`]). For comparisons; later solves use
+    /// them. Set-up cost only (allocates); the deluxe blocks take one
+    /// application of the subdomain's Schur complement (of `K_E` with the
+    /// lumped preconditioner) per face dof, so the Dirichlet interior
+    /// problems must be factored first. Without the CG workspace (another
+    /// method) there is nothing to set.
     pub fn set_interface_scaling(&mut self, kind: InterfaceScaling) {
         let Some(ws) = self.cg.as_mut() else {
             return;
@@ -319,12 +334,84 @@ impl DdSolver {
             .map(|s| s.inv_mult.iter().map(|&w| (1.0 / w).round() as u32).collect())
             .collect();
         let diag: Vec<Vec<f64>> = match kind {
-            InterfaceScaling::Stiffness | InterfaceScaling::Contrast => {
+            InterfaceScaling::Stiffness | InterfaceScaling::Contrast | InterfaceScaling::Deluxe => {
                 self.op.subs.iter().map(|s| s.op.diagonal()).collect()
             }
             _ => Vec::new(),
         };
         ws.w = scaling::interface_weights(&entries, &self.dof_maps, &mult, &diag, kind);
+        // Face entries: dof shared by the two sides only.
+        let faces: Vec<Vec<u32>> = self
+            .op
+            .ifaces
+            .iter()
+            .map(|it| {
+                let m = &mult[it.lo];
+                (0..it.lo_idx.len() as u32)
+                    .filter(|&j| kind == InterfaceScaling::Deluxe && m[it.lo_idx[j as usize] as usize] == 2)
+                    .collect()
+            })
+            .collect();
+        drop(entries);
+        if kind != InterfaceScaling::Deluxe {
+            ws.deluxe.iter_mut().for_each(|d| *d = DeluxeFace::default());
+            return;
+        }
+        // Face blocks of each subdomain's Schur complement, one column per
+        // face dof: `S_E e_l` restricted to the face.
+        let ifaces = &self.op.ifaces;
+        let blocks: Vec<Vec<Mat<f64>>> = self
+            .op
+            .subs
+            .par_iter_mut()
+            .map(|s| {
+                let n = s.op.n();
+                let (mut x, mut y) = (vec![0.0; n], vec![0.0; n]);
+                s.ifaces
+                    .iter()
+                    .map(|&(i, is_lo)| {
+                        let it = &ifaces[i];
+                        let idx = if is_lo { &it.lo_idx } else { &it.hi_idx };
+                        let face = &faces[i];
+                        if let Some(ip) = s.interior.as_mut() {
+                            let rows: Vec<u32> = face.iter().map(|&f| idx[f as usize]).collect();
+                            // A failure (out of memory) leaves this face
+                            // without deluxe weights.
+                            return ip.schur_block(&s.op, &rows).unwrap_or_else(|_| Mat::zeros(0, 0));
+                        }
+                        // Lumped: the face block of K_E.
+                        let mut b = Mat::<f64>::zeros(face.len(), face.len());
+                        for (k, &f) in face.iter().enumerate() {
+                            let l = idx[f as usize] as usize;
+                            x[l] = 1.0;
+                            s.op.apply(&x, &mut y);
+                            x[l] = 0.0;
+                            for (m, &g) in face.iter().enumerate() {
+                                b[(m, k)] = y[idx[g as usize] as usize];
+                            }
+                        }
+                        b
+                    })
+                    .collect()
+            })
+            .collect();
+        let mut side: Vec<[Option<&Mat<f64>>; 2]> = vec![[None, None]; self.op.ifaces.len()];
+        for (s, b) in self.op.subs.iter().zip(&blocks) {
+            for (&(i, is_lo), m) in s.ifaces.iter().zip(b) {
+                side[i][usize::from(!is_lo)] = Some(m);
+            }
+        }
+        ws.deluxe = faces
+            .into_par_iter()
+            .zip(side.par_iter())
+            .map(|(face, [lo, hi])| match (lo, hi) {
+                (Some(lo), Some(hi)) if !face.is_empty() && lo.nrows() == face.len() && hi.nrows() == face.len() => {
+                    // A failed eigensolve leaves the pointwise weights there.
+                    DeluxeFace::new(face, lo.as_ref(), hi.as_ref()).unwrap_or_default()
+                }
+                _ => DeluxeFace::default(),
+            })
+            .collect();
     }
 
     /// The energies of the CG stopping test ([`crate::cg_stopping`]) for

@@ -27,6 +27,7 @@ pub fn opts(method: Method, subdomains: usize, tol: f64) -> SolveOptions {
         max_iterations: 200_000,
         search_direction: SearchDirection::Auto,
         preconditioner: Default::default(),
+        interface_scaling: Default::default(),
         partitioner: Default::default(),
     }
 }
