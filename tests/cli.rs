@@ -688,9 +688,9 @@ fn cg_preconditioner_flag() {
     let direct = d.join("direct.json");
     ok(&nsdd(&["solve", s(&scene), "--method", "direct", "--out", s(&direct)]));
     let rd = read_json(&direct);
-    let mut iterations = Vec::new();
-    for p in ["dirichlet", "lumped"] {
-        let out_p = d.join(format!("{p}.json"));
+    // cg with `flag value`, checked against the direct solution; its iterations.
+    let cg_with = |flag: &str, value: &str| -> u64 {
+        let out = d.join(format!("{value}.json"));
         ok(&nsdd(&[
             "solve",
             s(&scene),
@@ -700,39 +700,26 @@ fn cg_preconditioner_flag() {
             "4",
             "--tolerance",
             "1e-9",
-            "--preconditioner",
-            p,
+            flag,
+            value,
             "--out",
-            s(&out_p),
+            s(&out),
         ]));
-        let r = read_json(&out_p);
-        assert_matches(&r, &rd, 1e-7, p);
-        iterations.push(r["iterations"].as_u64().unwrap());
-    }
+        let r = read_json(&out);
+        assert_matches(&r, &rd, 1e-7, value);
+        r["iterations"].as_u64().unwrap()
+    };
+    let iterations: Vec<u64> = ["dirichlet", "lumped"]
+        .iter()
+        .map(|p| cg_with("--preconditioner", p))
+        .collect();
     assert_ne!(iterations[0], iterations[1]);
     // --interface-scaling reaches it too: each value matches the direct
     // solution, deluxe (the default) in fewer iterations than contrast.
-    let mut its = Vec::new();
-    for k in ["deluxe", "contrast", "multiplicity"] {
-        let out_k = d.join(format!("{k}.json"));
-        ok(&nsdd(&[
-            "solve",
-            s(&scene),
-            "--method",
-            "cg",
-            "--subdomains",
-            "4",
-            "--tolerance",
-            "1e-9",
-            "--interface-scaling",
-            k,
-            "--out",
-            s(&out_k),
-        ]));
-        let r = read_json(&out_k);
-        assert_matches(&r, &rd, 1e-7, k);
-        its.push(r["iterations"].as_u64().unwrap());
-    }
+    let its: Vec<u64> = ["deluxe", "contrast", "multiplicity"]
+        .iter()
+        .map(|k| cg_with("--interface-scaling", k))
+        .collect();
     assert_eq!(its[0], iterations[0], "deluxe is the default");
     assert!(its[0] < its[1], "deluxe {} vs contrast {}", its[0], its[1]);
     let out = nsdd(&["solve", s(&scene), "--method", "cg", "--interface-scaling", "rho"]);

@@ -222,7 +222,8 @@ impl DdSolver {
                 continue;
             }
             best = best.min(indicator);
-            self.op.precondition(&ws.r, &ws.w, &mut ws.deluxe, &mut ws.sl, &mut ws.sh, &mut ws.z);
+            self.op
+                .precondition(&ws.r, &ws.w, &mut ws.deluxe, &mut ws.sl, &mut ws.sh, &mut ws.z);
             let rz_new = self.op.dot(&ws.r, &ws.z);
             let beta = rz_new / rz;
             rz = rz_new;
@@ -280,7 +281,8 @@ impl DdSolver {
         for (cr, it) in ws.r.iter_mut().zip(&self.op.ifaces) {
             cr.copy_from_slice(&it.jump);
         }
-        self.op.precondition(&ws.r, &ws.w, &mut ws.deluxe, &mut ws.sl, &mut ws.sh, &mut ws.z);
+        self.op
+            .precondition(&ws.r, &ws.w, &mut ws.deluxe, &mut ws.sl, &mut ws.sh, &mut ws.z);
         for (cp, cz) in ws.p.iter_mut().zip(&ws.z) {
             cp.copy_from_slice(cz);
         }
