@@ -6,7 +6,7 @@
 use crate::cg_stopping::{self, CgStopping};
 use crate::dd::DdSolver;
 use crate::error::Result;
-use crate::method::stopping::{ending, stalled};
+use crate::method::stopping::{finish, stalled};
 use crate::outcome::{Outcome, Status};
 use crate::result::HistoryEntry;
 use crate::scaling::{self, DeluxeFace, EntryWeights, InterfaceScaling};
@@ -236,18 +236,7 @@ impl DdSolver {
         for (s, cv) in self.op.subs.iter_mut().zip(&ws.v) {
             s.v.copy_from_slice(cv);
         }
-        let (u, lambda) = self.assemble();
-        let (status, message) = ending(converged, ended);
-        Ok(Outcome {
-            u,
-            lambda,
-            status,
-            iterations,
-            history,
-            message,
-            search_direction: None,
-            outer_steps: None,
-        })
+        Ok(finish(self, converged, ended, iterations, history, None))
     }
 
     /// `out = A p = −J V_hom(p)`, the CG operator on the interface vector

@@ -6,7 +6,7 @@
 
 use crate::dd::DdSolver;
 use crate::error::Result;
-use crate::method::stopping::{ending, stalled, stopping_factor, DIVERGENCE_GROWTH};
+use crate::method::stopping::{finish, stalled, stopping_factor, DIVERGENCE_GROWTH};
 use crate::outcome::{Outcome, Status};
 use crate::result::HistoryEntry;
 use crate::settings::SearchDirection;
@@ -123,17 +123,6 @@ impl DdSolver {
             converged = indicator <= self.opts.tolerance
                 && (indicator * stopping_factor(recent) <= self.opts.tolerance || stalled(recent));
         }
-        let (u, lambda) = self.assemble();
-        let (status, message) = ending(converged, ended);
-        Ok(Outcome {
-            u,
-            lambda,
-            status,
-            iterations,
-            history,
-            message,
-            search_direction: Some(d),
-            outer_steps: None,
-        })
+        Ok(finish(self, converged, ended, iterations, history, Some(d)))
     }
 }

@@ -1,7 +1,8 @@
 //! The stopping tests and the ending of a method's loop, shared by every
 //! method (the stationary iteration, CG, and the ones to come).
 
-use crate::outcome::Status;
+use crate::dd::DdSolver;
+use crate::outcome::{Outcome, Status};
 use crate::result::HistoryEntry;
 
 /// Indicator growth over the best value seen that counts as divergence.
@@ -49,12 +50,31 @@ pub fn stalled(history: &[HistoryEntry]) -> bool {
     n > CONTRACTION_WINDOW && history[n - 1].indicator >= history[n - 1 - CONTRACTION_WINDOW].indicator
 }
 
-/// The status of a finished loop: converged, the reason it broke off, or
-/// the iteration limit.
-pub fn ending(converged: bool, ended: Option<(Status, String)>) -> (Status, Option<String>) {
-    match (converged, ended) {
+/// The outcome of a finished loop over the set-up solver: the assembled
+/// displacement and slacks, with the status from `converged` and the reason
+/// the loop broke off (`ended`; none: the iteration limit).
+pub fn finish(
+    solver: &DdSolver,
+    converged: bool,
+    ended: Option<(Status, String)>,
+    iterations: usize,
+    history: Vec<HistoryEntry>,
+    search_direction: Option<f64>,
+) -> Outcome {
+    let (u, lambda) = solver.assemble();
+    let (status, message) = match (converged, ended) {
         (true, _) => (Status::Converged, None),
         (false, Some((status, message))) => (status, Some(message)),
         (false, None) => (Status::IterationLimit, None),
+    };
+    Outcome {
+        u,
+        lambda,
+        status,
+        iterations,
+        history,
+        message,
+        search_direction,
+        outer_steps: None,
     }
 }
