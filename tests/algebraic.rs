@@ -6,8 +6,9 @@
 // Dense elimination and element loops index like their formulas.
 #![allow(clippy::needless_range_loop)]
 
+mod common;
 use nsdd::algebraic::AlgebraicProblem;
-use nsdd::dd::{DdProblem, NO_DOF};
+use nsdd::dd::DdProblem;
 use nsdd::direct::DirectSolver;
 use nsdd::error::Error;
 use nsdd::model::Model;
@@ -215,21 +216,7 @@ fn scene_with_slack_cables_matches_the_direct_solver() {
         let (rp, ci, va) = full_csr(&op.stiffness);
         problem.subdomain(s, &rp, &ci, &va, &dec.subdomains[s].dofs).unwrap();
     }
-    let mut cables: Vec<(usize, nsdd::dd::CableColumn)> = dd
-        .loads
-        .iter()
-        .enumerate()
-        .flat_map(|(s, l)| l.cables.iter().map(move |c| (s, *c)))
-        .collect();
-    cables.sort_by_key(|(_, c)| c.cable);
-    for (s, c) in cables {
-        let (dofs, coefs): (Vec<usize>, Vec<f64>) = c
-            .dofs
-            .iter()
-            .zip(&c.coef)
-            .filter(|(d, _)| **d != NO_DOF)
-            .map(|(&d, &v)| (d as usize, v))
-            .unzip();
+    for (s, c, dofs, coefs) in common::cable_terms(&dd) {
         assert_eq!(problem.cable(s, &dofs, &coefs, c.k, c.e0).unwrap(), c.cable);
     }
     let points: Vec<[f64; 3]> = dd.dof_points.iter().map(|(p, _)| *p).collect();

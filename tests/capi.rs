@@ -8,8 +8,9 @@
 //! `cargo test --release --test capi -- --ignored c_examples` (skipped when no
 //! C compiler is found).
 
+mod common;
 use nsdd::capi::*;
-use nsdd::dd::{DdOptions, DdProblem, DdSolver, NO_DOF};
+use nsdd::dd::{DdOptions, DdProblem, DdSolver};
 use nsdd::model::Model;
 use nsdd::scene::{InterfaceScaling, Method, Preconditioner, Scene};
 use nsdd::solve::{decompose, solve, SolveOptions};
@@ -976,21 +977,7 @@ fn algebraic_from_scene(file: &str, ns: usize) -> (Model, nsdd::decomposition::D
                 l2g.as_ptr(),
             ));
         }
-        let mut cables: Vec<(usize, nsdd::dd::CableColumn)> = problem
-            .loads
-            .iter()
-            .enumerate()
-            .flat_map(|(s, l)| l.cables.iter().map(move |c| (s, *c)))
-            .collect();
-        cables.sort_by_key(|(_, c)| c.cable);
-        for (s, c) in cables {
-            let (dofs, coefs): (Vec<usize>, Vec<f64>) = c
-                .dofs
-                .iter()
-                .zip(&c.coef)
-                .filter(|(d, _)| **d != NO_DOF)
-                .map(|(&d, &v)| (d as usize, v))
-                .unzip();
+        for (s, c, dofs, coefs) in common::cable_terms(&problem) {
             let mut index = usize::MAX;
             ok(nsdd_alg_add_cable(
                 h,

@@ -207,3 +207,29 @@ pub fn cube_lattice(
     }
     s
 }
+
+/// The cables of a set-up problem in global cable order, each with its
+/// subdomain and its local dofs and coefficients (unused slots dropped):
+/// what a caller of the algebraic level passes for it.
+pub fn cable_terms(problem: &nsdd::dd::DdProblem) -> Vec<(usize, nsdd::dd::CableColumn, Vec<usize>, Vec<f64>)> {
+    let mut cables: Vec<(usize, nsdd::dd::CableColumn)> = problem
+        .loads
+        .iter()
+        .enumerate()
+        .flat_map(|(s, l)| l.cables.iter().map(move |c| (s, *c)))
+        .collect();
+    cables.sort_by_key(|(_, c)| c.cable);
+    cables
+        .into_iter()
+        .map(|(s, c)| {
+            let (dofs, coefs): (Vec<usize>, Vec<f64>) = c
+                .dofs
+                .iter()
+                .zip(&c.coef)
+                .filter(|(d, _)| **d != nsdd::dd::NO_DOF)
+                .map(|(&d, &v)| (d as usize, v))
+                .unzip();
+            (s, c, dofs, coefs)
+        })
+        .collect()
+}
