@@ -67,6 +67,17 @@ impl CgWorkspace {
     }
 }
 
+/// A CG history entry: the indicator is the jump's (no cable stage).
+fn cg_entry(iteration: usize, t0: Instant, indicator: f64) -> HistoryEntry {
+    HistoryEntry {
+        iteration,
+        time_s: t0.elapsed().as_secs_f64(),
+        indicator,
+        jump: Some(indicator),
+        cable_change: None,
+    }
+}
+
 impl DdSolver {
     /// Conjugate gradient on the interface problem (docs/design.md §6, the
     /// paper's outlook), linear case. With `S(F) = F + P f(F)` the forces
@@ -134,13 +145,7 @@ impl DdSolver {
                     break;
                 }
                 let indicator = self.cg_indicator(ws, b_norm);
-                history.push(HistoryEntry {
-                    iteration: iterations,
-                    time_s: t0.elapsed().as_secs_f64(),
-                    indicator,
-                    jump: Some(indicator),
-                    cable_change: None,
-                });
+                history.push(cg_entry(iterations, t0, indicator));
                 converged = indicator <= self.opts.tolerance;
                 if !converged {
                     ended = Some((
@@ -169,13 +174,7 @@ impl DdSolver {
                 }
             });
             let indicator = self.cg_indicator(ws, b_norm);
-            history.push(HistoryEntry {
-                iteration: iterations,
-                time_s: t0.elapsed().as_secs_f64(),
-                indicator,
-                jump: Some(indicator),
-                cable_change: None,
-            });
+            history.push(cg_entry(iterations, t0, indicator));
             if let Some(p) = progress.as_mut() {
                 p(iterations, indicator);
             }
