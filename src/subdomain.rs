@@ -231,7 +231,16 @@ impl SubdomainOperator {
             return Err(too_many(fixing.len()));
         }
         let scale = diag_max(&stiffness);
-        let chol = factor_with_fixing(&stiffness, order, &mut fixing, scale, max_rhs, id, &indefinite)?;
+        let chol = factor_with_fixing(
+            &stiffness,
+            order,
+            &mut fixing,
+            scale,
+            max_rhs,
+            id,
+            &indefinite,
+            SUBDOMAIN_PIVOT_RATIO,
+        )?;
         let mut op = SubdomainOperator {
             id,
             stiffness,
@@ -240,22 +249,42 @@ impl SubdomainOperator {
             kernel: Mat::zeros(n, 0),
         };
         let mut cols = op.fixed_kernel_columns();
-        // Suspects whose kernel vector is not one (K r clearly nonzero) are
-        // soft stiffness: release them and factor again (once; a pivot that
-        // then fails below SUBDOMAIN_PIVOT_RATIO is fixed again).
-        let mut soft = Vec::new();
-        let mut kr = vec![0.0; n];
-        for (j, &f) in op.fixing.iter().enumerate() {
-            let col = &cols[j * n..(j + 1) * n];
-            sym_matvec(&op.stiffness, col, &mut kr);
-            if kernels::norm2(&kr).sqrt() > MECHANISM_TOL * scale * kernels::norm2(col).sqrt() {
-                soft.push(f);
+        // Tell mechanisms from soft stiffness among the suspects. With
+        // stiffness contrast the two mix: a mechanism's round-off pivot is
+        // as large as a soft cable's (cond(K)·ε ≈ 1e-8 at contrast 1e8), and
+        // with several suspects fixed together a mechanism is a combination
+        // of their columns, not one column. So the test is on the span:
+        // the Schur complement of the suspects (`K R` on their rows) is
+        // diagonalised, its near-zero directions are the mechanisms and
+        // the rest is released (at most a few rounds: releasing may expose
+        // a pivot the factorization then fixes again).
+        for _ in 0..MAX_RELEASE_ROUNDS {
+            let m = op.fixing.len();
+            if m == 0 {
+                break;
             }
-        }
-        if !soft.is_empty() {
-            let mut fixing = std::mem::take(&mut op.fixing);
-            fixing.retain(|f| !soft.contains(f));
-            op.chol = factor_with_fixing(&op.stiffness, order, &mut fixing, scale, max_rhs, id, &indefinite)?;
+            let keep = if m <= MAX_SPAN_TEST {
+                mechanism_dofs_by_span(&op.stiffness, &op.fixing, &cols, scale)
+            } else {
+                mechanism_dofs_by_column(&op.stiffness, &op.fixing, &cols, scale)
+            };
+            if keep.len() == m {
+                break;
+            }
+            // The released ones are soft, not singular: their pivots may sit
+            // below SUBDOMAIN_PIVOT_RATIO (1e-10 at contrast 1e8) and must not
+            // be fixed again; anything below RELEASED_PIVOT_RATIO is.
+            let mut fixing = keep;
+            op.chol = factor_with_fixing(
+                &op.stiffness,
+                order,
+                &mut fixing,
+                scale,
+                max_rhs,
+                id,
+                &indefinite,
+                RELEASED_PIVOT_RATIO,
+            )?;
             op.fixing = fixing;
             cols = op.fixed_kernel_columns();
         }
@@ -272,6 +301,7 @@ impl SubdomainOperator {
             });
         }
         // A posteriori: every kernel vector must satisfy K r ≈ 0.
+        let mut kr = vec![0.0; n];
         for j in 0..q.ncols() {
             let col: Vec<f64> = (0..n).map(|i| q[(i, j)]).collect();
             sym_matvec(&op.stiffness, &col, &mut kr);
@@ -305,6 +335,24 @@ impl SubdomainOperator {
         self.solve_columns(&mut cols, r);
         for (j, &f) in self.fixing.iter().enumerate() {
             cols[j * n + f] = 1.0;
+        }
+        // Refinement: the computed `K_rr⁻¹ K_rf` carries an error of
+        // cond(K_rr)·ε, which stiffness contrast makes large (1e8 between
+        // bars and cables leaves ‖K r‖ ≈ 1e-8 ‖K‖ on a true mechanism, far
+        // above MECHANISM_TOL, and the mechanism was then factored as a
+        // soft pivot). Two passes bring the `r` rows back to round-off, so
+        // `‖K r‖` measures only the Schur pivot at the fixing dof: zero for a
+        // mechanism, the soft stiffness otherwise.
+        let mut res = vec![0.0; n * r];
+        for _ in 0..2 {
+            for j in 0..r {
+                sym_matvec(&self.stiffness, &cols[j * n..(j + 1) * n], &mut res[j * n..(j + 1) * n]);
+                res[j * n..(j + 1) * n].iter_mut().for_each(|v| *v = -*v);
+            }
+            self.solve_columns(&mut res, r);
+            for (c, &d) in cols.iter_mut().zip(&res) {
+                *c += d;
+            }
         }
         cols
     }
@@ -364,6 +412,124 @@ impl SubdomainOperator {
     }
 }
 
+/// Rounds of releasing soft suspects and refactoring in
+/// [`SubdomainOperator`]'s kernel detection.
+const MAX_RELEASE_ROUNDS: usize = 4;
+
+/// Pivot ratio below which a pivot is fixed again after the soft suspects
+/// were released: they were shown to carry stiffness, so only a pivot at
+/// round-off level can be a new singular direction.
+const RELEASED_PIVOT_RATIO: f64 = 1e-14;
+
+/// Most suspects classified together by [`mechanism_dofs_by_span`] (a
+/// dense eigenproblem of this size); beyond it each column is judged alone.
+const MAX_SPAN_TEST: usize = 512;
+
+/// The suspects (fixing dofs, with their kernel columns `cols`, `n × m`
+/// column-major) to keep fixed: as many as the mechanisms in the span of
+/// the columns, chosen so that the mechanisms are determined by their
+/// values there (greedy pivoting on those values). A direction `x = R y`
+/// is a mechanism when `xᵀ K x ≤ MECHANISM_TOL · max diag K · ‖x‖²`.
+fn mechanism_dofs_by_span(
+    stiffness: &SparseColMat<usize, f64>,
+    fixing: &[usize],
+    cols: &[f64],
+    scale: f64,
+) -> Vec<usize> {
+    let m = fixing.len();
+    let n = stiffness.nrows();
+    // Unit columns, so that `G = BᵀB` is well scaled.
+    let norms: Vec<f64> = (0..m)
+        .map(|j| kernels::norm2(&cols[j * n..(j + 1) * n]).sqrt())
+        .collect();
+    let mut kb = vec![0.0; n];
+    let mut s = Mat::<f64>::zeros(m, m);
+    for j in 0..m {
+        let b: Vec<f64> = cols[j * n..(j + 1) * n].iter().map(|v| v / norms[j]).collect();
+        sym_matvec(stiffness, &b, &mut kb);
+        for i in 0..m {
+            s[(i, j)] = kb[fixing[i]] / norms[i];
+        }
+    }
+    let g = Mat::from_fn(m, m, |i, j| {
+        let (a, b) = (&cols[i * n..(i + 1) * n], &cols[j * n..(j + 1) * n]);
+        a.iter().zip(b).map(|(x, y)| x * y).sum::<f64>() / (norms[i] * norms[j])
+    });
+    let s = Mat::from_fn(m, m, |i, j| 0.5 * (s[(i, j)] + s[(j, i)]));
+    // G = V Λ Vᵀ, W = V Λ^{-1/2}: C = Wᵀ S W has the energy quotients of
+    // `x = B W y` as eigenvalues.
+    let (Ok(ge), true) = (g.self_adjoint_eigen(faer::Side::Lower), m > 0) else {
+        return mechanism_dofs_by_column(stiffness, fixing, cols, scale);
+    };
+    let (gv, gl) = (ge.U(), ge.S().column_vector());
+    let gmax = (0..m).map(|k| gl[k]).fold(0.0f64, f64::max);
+    if !(gl[0] > 1e-12 * gmax) {
+        return mechanism_dofs_by_column(stiffness, fixing, cols, scale);
+    }
+    let w = Mat::from_fn(m, m, |i, k| gv[(i, k)] / gl[k].sqrt());
+    let c = w.transpose() * &s * &w;
+    let c = Mat::from_fn(m, m, |i, j| 0.5 * (c[(i, j)] + c[(j, i)]));
+    let Ok(ce) = c.self_adjoint_eigen(faer::Side::Lower) else {
+        return mechanism_dofs_by_column(stiffness, fixing, cols, scale);
+    };
+    let (cy, cl) = (ce.U(), ce.S().column_vector());
+    let k = (0..m).filter(|&t| cl[t] <= MECHANISM_TOL * scale).count();
+    if k == 0 || k == m {
+        return if k == 0 { Vec::new() } else { fixing.to_vec() };
+    }
+    // Value of mechanism t at suspect i: (B W y_t)[fixing[i]] = (W y_t)_i / norms_i.
+    let z = &w * cy.get(.., 0..k);
+    let mut rows: Vec<Vec<f64>> = (0..m).map(|i| (0..k).map(|t| z[(i, t)] / norms[i]).collect()).collect();
+    let mut chosen = Vec::with_capacity(k);
+    for _ in 0..k {
+        let best = (0..m)
+            .filter(|i| !chosen.contains(i))
+            .fold(None, |b: Option<(usize, f64)>, i| {
+                let v = kernels::norm2(&rows[i]);
+                if b.is_none_or(|(_, bv)| v > bv) {
+                    Some((i, v))
+                } else {
+                    b
+                }
+            });
+        let Some((p, pv)) = best else { break };
+        if !(pv > 0.0) {
+            break;
+        }
+        chosen.push(p);
+        // Remove the chosen row's direction from the others (Gram–Schmidt).
+        let q: Vec<f64> = rows[p].iter().map(|v| v / pv.sqrt()).collect();
+        for row in rows.iter_mut() {
+            let d: f64 = row.iter().zip(&q).map(|(a, b)| a * b).sum();
+            row.iter_mut().zip(&q).for_each(|(a, b)| *a -= d * b);
+        }
+    }
+    let mut keep: Vec<usize> = chosen.into_iter().map(|i| fixing[i]).collect();
+    keep.sort_unstable();
+    keep
+}
+
+/// Per-column test: a suspect stays fixed when its own column is a kernel
+/// vector (`‖K r‖ ≤ MECHANISM_TOL · max diag K · ‖r‖`).
+fn mechanism_dofs_by_column(
+    stiffness: &SparseColMat<usize, f64>,
+    fixing: &[usize],
+    cols: &[f64],
+    scale: f64,
+) -> Vec<usize> {
+    let n = stiffness.nrows();
+    let mut kr = vec![0.0; n];
+    let mut keep = Vec::new();
+    for (j, &f) in fixing.iter().enumerate() {
+        let col = &cols[j * n..(j + 1) * n];
+        sym_matvec(stiffness, col, &mut kr);
+        if kernels::norm2(&kr).sqrt() <= MECHANISM_TOL * scale * kernels::norm2(col).sqrt() {
+            keep.push(f);
+        }
+    }
+    keep
+}
+
 /// Factors `K` with the fixing dofs decoupled; a pivot that still fails
 /// (round-off the scan kept) is fixed too, and the kernel check rejects it
 /// later if it was not a mechanism. Decoupling keeps the pattern, so the
@@ -377,10 +543,11 @@ fn factor_with_fixing(
     max_rhs: usize,
     id: usize,
     indefinite: &dyn Fn(usize, String) -> Error,
+    pivot_ratio: f64,
 ) -> Result<SparseCholesky> {
     loop {
         let regular = decouple(stiffness, fixing, scale);
-        match SparseCholesky::factor_ordered(&regular, Some(order), max_rhs.max(fixing.len()), SUBDOMAIN_PIVOT_RATIO) {
+        match SparseCholesky::factor_ordered(&regular, Some(order), max_rhs.max(fixing.len()), pivot_ratio) {
             Ok(c) => return Ok(c),
             Err(FactorError::Pivot { dof, .. }) if !fixing.contains(&dof) && fixing.len() < MAX_SUSPECTS => {
                 fixing.push(dof);

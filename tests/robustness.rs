@@ -1331,3 +1331,50 @@ fn solve_options_given_in_rust_are_checked_like_the_scene() {
         }
     }
 }
+
+/// The kernel of a linear truss stiffness `Σ EA_e b_e b_eᵀ` is the
+/// intersection of the `ker b_eᵀ`: it does not depend on the (positive)
+/// axial rigidities. So every subdomain must find the same kernel dimension
+/// whatever the bar/cable contrast. Before the kernel detection looked at
+/// the span of the suspect pivots, contrast 1e8 hid two mechanisms of the
+/// README tower's top subdomain (round-off pivots as large as the soft
+/// cables' ones) and one was factored as a soft pivot.
+#[test]
+fn subdomain_kernels_do_not_depend_on_stiffness_contrast() {
+    use nsdd::generate::{tower, TowerParams};
+    let dims = |ea_cable: f64| {
+        let scene = tower(&TowerParams {
+            nx: 2,
+            ny: 2,
+            nz: 10,
+            ea_cable,
+            unilateral: false,
+            ..Default::default()
+        });
+        let model = Model::from_scene(&scene).unwrap();
+        let dec = decompose(&model, &scene, 4).unwrap();
+        let dd = DdSolver::new(
+            &model,
+            &dec,
+            DdOptions {
+                coarse: true,
+                tolerance: 1e-8,
+                max_iterations: 10,
+                search_direction: SearchDirection::Auto,
+                krylov: true,
+                preconditioner: Default::default(),
+                interface_scaling: Default::default(),
+            },
+        )
+        .unwrap();
+        dd.stats().kernel_dims.clone()
+    };
+    let reference = dims(1.0);
+    assert!(
+        reference.iter().any(|&k| k > 6),
+        "a subdomain with mechanisms: {reference:?}"
+    );
+    for ea_cable in [1e-2, 1e-4] {
+        assert_eq!(dims(ea_cable), reference, "contrast {:.0e}", 1e4 / ea_cable);
+    }
+}
