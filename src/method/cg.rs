@@ -19,6 +19,15 @@ use std::time::Instant;
 const CG_RESTART_GROWTH: f64 = 4.0;
 /// ...at most this often in one solve.
 const CG_MAX_RESTARTS: usize = 10;
+/// ...or when its indicator has not fallen below `CG_PROGRESS` × its best
+/// for this many iterations: the recursive residual has converged while
+/// the true jump stays put (seen at stiffness contrast 1e8, where the
+/// recurrences drift by more than the tolerance and CG takes zero steps).
+const CG_STAGNATION_WINDOW: usize = 50;
+const CG_PROGRESS: f64 = 0.5;
+/// A jump below this fraction of the displacement is round-off (a few
+/// hundred ε): where the iteration stalls there, the message says so.
+const ROUNDOFF_JUMP: f64 = 1e-12;
 
 /// Scratch of the interface CG, allocated at set-up (the iteration
 /// allocates nothing).
@@ -123,6 +132,8 @@ impl DdSolver {
         }
         let mut iterations = 0;
         let (mut best, mut restarts, mut restart_at) = (f64::INFINITY, 0, 0);
+        // Best indicator at the last clear progress, and when.
+        let (mut milestone, mut milestone_at) = (f64::INFINITY, 0);
         let mut energy_terms = CgStopping::default();
         // How the loop ended when not by the stopping test or the limit.
         let mut ended: Option<(Status, String)> = None;
@@ -201,14 +212,38 @@ impl DdSolver {
             if converged {
                 break;
             }
-            if indicator > CG_RESTART_GROWTH * best {
+            if indicator < CG_PROGRESS * milestone {
+                (milestone, milestone_at) = (indicator, iterations);
+            }
+            let grew = indicator > CG_RESTART_GROWTH * best;
+            let stagnant = iterations - milestone_at > CG_STAGNATION_WINDOW;
+            if grew || stagnant {
                 if restarts == CG_MAX_RESTARTS {
-                    ended = Some((
-                        Status::Stalled,
-                        format!("the residual grew again after {CG_MAX_RESTARTS} restarts from the true residual"),
-                    ));
+                    let (jump, force) = self.cg_indicator_parts(ws, b_norm);
+                    let floor = if jump < ROUNDOFF_JUMP && force > jump {
+                        format!(
+                            ": the jump is at round-off ({jump:.1e} of the displacement) but the force it leaves \
+                             through the interface stiffness is {force:.1e} of the loads, a floor set by the \
+                             stiffness contrast (tensions are measured in each element's own subdomain and do \
+                             not carry it)"
+                        )
+                    } else {
+                        String::new()
+                    };
+                    let why = if grew {
+                        format!(
+                            "the residual grew again after {CG_MAX_RESTARTS} restarts from the true residual{floor}"
+                        )
+                    } else {
+                        format!(
+                            "no progress over {CG_STAGNATION_WINDOW} iterations after {CG_MAX_RESTARTS} restarts \
+                             from the true residual{floor}"
+                        )
+                    };
+                    ended = Some((Status::Stalled, why));
                     break;
                 }
+                milestone_at = iterations;
                 // The recurrences have drifted from the true operator (the
                 // coarse solve is exact only to round-off, and the residual
                 // fell by many orders): recompute V(F) and the residual from
@@ -281,6 +316,18 @@ impl DdSolver {
     /// length and as a force (see the stationary iteration). Leaves `jump`
     /// = `J V`.
     fn cg_indicator(&mut self, ws: &CgWorkspace, b_norm: f64) -> f64 {
+        let (jump, force) = self.cg_indicator_parts(ws, b_norm);
+        if jump.is_finite() {
+            jump.max(force)
+        } else {
+            f64::NAN
+        }
+    }
+
+    /// The two parts of [`Self::cg_indicator`]: the jump relative to the
+    /// displacement, and the force it leaves unbalanced through the lumped
+    /// interface stiffness relative to the loads.
+    fn cg_indicator_parts(&mut self, ws: &CgWorkspace, b_norm: f64) -> (f64, f64) {
         self.op.jumps(Some(&ws.v));
         let v2 = self.op.norm2_subdomains(&ws.v);
         let vn = v2.sqrt().max(f64::MIN_POSITIVE);
@@ -288,9 +335,9 @@ impl DdSolver {
         let jump = jump2.sqrt() / vn;
         let force = force2.sqrt() / self.force_scale(b_norm);
         if v2.is_finite() {
-            jump.max(force)
+            (jump, force)
         } else {
-            f64::NAN
+            (f64::NAN, f64::NAN)
         }
     }
 
