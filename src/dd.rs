@@ -805,6 +805,30 @@ impl DdSolver {
         !self.op.ifaces.is_empty()
     }
 
+    /// Elongation of every element of `model`, each measured in the
+    /// displacement copy of the subdomain that owns it (`dec` is the
+    /// decomposition this solver was set up on): consistent with the
+    /// interface forces, where the assembled displacement averages the
+    /// copies across interfaces. Allocates (once per solve).
+    pub fn element_elongations(&self, model: &Model, dec: &Decomposition) -> Vec<f64> {
+        let mut out = vec![0.0; model.elements.len()];
+        for (sd, st) in dec.subdomains.iter().zip(&self.op.subs) {
+            let value = |d: usize| {
+                if d == FIXED {
+                    0.0
+                } else {
+                    sd.local(d).map_or(0.0, |l| st.v[l])
+                }
+            };
+            for &e in &sd.elements {
+                let dofs = model.element_dofs(e);
+                let n = model.elements[e].dir;
+                out[e] = (0..3).map(|c| n[c] * (value(dofs[3 + c]) - value(dofs[c]))).sum();
+            }
+        }
+        out
+    }
+
     /// Whether any subdomain needed a generalised inverse.
     pub fn has_kernels(&self) -> bool {
         self.stats.kernel_unknowns > 0

@@ -330,10 +330,16 @@ impl Model {
     /// Tensions from displacements and slack flags: a slack cable reports
     /// exactly 0, a taut cable never pushes.
     pub fn tensions_with_slack(&self, u: &[f64], slack: &[bool]) -> Vec<f64> {
+        let elongations: Vec<f64> = (0..self.elements.len()).map(|e| self.elongation(e, u)).collect();
+        self.tensions_from_elongations(&elongations, slack)
+    }
+
+    /// [`Self::tensions_with_slack`] from given element elongations.
+    pub fn tensions_from_elongations(&self, elongations: &[f64], slack: &[bool]) -> Vec<f64> {
         (0..self.elements.len())
             .map(|e| {
                 let el = &self.elements[e];
-                let t = el.k * (self.elongation(e, u) + el.e0);
+                let t = el.k * (elongations[e] + el.e0);
                 if !el.unilateral {
                     t
                 } else if slack[e] {

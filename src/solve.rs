@@ -187,9 +187,14 @@ impl Prepared {
                     message: None,
                     search_direction: None,
                     outer_steps: None,
+                    elongations: None,
                 })
             }
-            Prepared::Dd(dd, _) => dd.solve(f_ext, warm, progress),
+            Prepared::Dd(dd, dec) => {
+                let mut out = dd.solve(f_ext, warm, progress)?;
+                out.elongations = Some(dd.element_elongations(model, dec));
+                Ok(out)
+            }
             Prepared::NonsmoothCg(ns) => {
                 let max_iterations = ns.max_iterations();
                 let out = ns.solve(model, f_ext, progress)?;
@@ -209,6 +214,7 @@ impl Prepared {
                     message: None,
                     search_direction: None,
                     outer_steps: Some((out.outer_steps, out.setups)),
+                    elongations: None,
                 })
             }
         }
@@ -274,7 +280,10 @@ fn case_result(model: &Model, name: &str, load_factor: f64, st: &Outcome, slack_
         status: st.status,
         iterations: st.iterations,
         displacements: model.node_displacements(&st.u),
-        tensions: model.tensions_with_slack(&st.u, &slack),
+        tensions: match &st.elongations {
+            Some(el) => model.tensions_from_elongations(el, &slack),
+            None => model.tensions_with_slack(&st.u, &slack),
+        },
         slack,
     }
 }

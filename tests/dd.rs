@@ -348,7 +348,10 @@ fn interface_cg_converges_across_the_tower_contrast() {
 /// and 2.0e-9, the first iterates below 1e-8 being 44 and 39). The stop
 /// must land at most 1.25× the iterations of the first iterate whose true
 /// error (max of displacements and tensions) is below the tolerance, with
-/// the error there between 5e-10 and the tolerance.
+/// the error there between 1e-10 (issue 18's lower bound) and the
+/// tolerance. (Since tensions are measured in each element's own
+/// subdomain, the error at the same stop is smaller: 3.8e-10 with 4
+/// subdomains, where tensions from the averaged displacement gave 2.1e-9.)
 #[test]
 fn interface_cg_stops_near_the_true_error_crossing() {
     let scene = grid_scene(16, false);
@@ -367,7 +370,7 @@ fn interface_cg_stops_near_the_true_error_crossing() {
         assert!(full.converged, "{n} subdomains: not converged");
         let stop = full.iterations;
         assert!(
-            err <= tol && err >= 5e-10,
+            err <= tol && err >= 1e-10,
             "{n} subdomains: error {err:.2e} at the stop ({stop})"
         );
         // First iterate below the tolerance, by bisection (errors fall).

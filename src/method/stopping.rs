@@ -76,5 +76,6 @@ pub fn finish(
         message,
         search_direction,
         outer_steps: None,
+        elongations: None,
     }
 }
