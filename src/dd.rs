@@ -812,6 +812,22 @@ impl DdSolver {
     /// copies across interfaces. Allocates (once per solve).
     pub fn element_elongations(&self, model: &Model, dec: &Decomposition) -> Vec<f64> {
         let mut out = vec![0.0; model.elements.len()];
+        self.write_element_elongations(model, dec, None, &mut out);
+        out
+    }
+
+    /// [`Self::element_elongations`] into `out` (indexed by `model`'s
+    /// elements), for a decomposition of a structure whose element `i` is
+    /// `model`'s element `ids[i]` (`None`: the same numbering; nodes and
+    /// dofs are shared either way). Elements no subdomain holds keep their
+    /// value.
+    pub(crate) fn write_element_elongations(
+        &self,
+        model: &Model,
+        dec: &Decomposition,
+        ids: Option<&[usize]>,
+        out: &mut [f64],
+    ) {
         for (sd, st) in dec.subdomains.iter().zip(&self.op.subs) {
             let value = |d: usize| {
                 if d == FIXED {
@@ -821,12 +837,12 @@ impl DdSolver {
                 }
             };
             for &e in &sd.elements {
+                let e = ids.map_or(e, |ids| ids[e]);
                 let dofs = model.element_dofs(e);
                 let n = model.elements[e].dir;
                 out[e] = (0..3).map(|c| n[c] * (value(dofs[3 + c]) - value(dofs[c]))).sum();
             }
         }
-        out
     }
 
     /// Whether any subdomain needed a generalised inverse.

@@ -126,6 +126,12 @@ pub struct NonsmoothOutcome {
     /// instead (same elements and dof layout: no slack cable of theirs
     /// changed).
     pub reused: usize,
+    /// Element elongations, each measured in its own subdomain's copy
+    /// (slack cables, outside the last set-up's structure, from the
+    /// assembled displacement): see [`crate::outcome::Outcome::elongations`].
+    pub elongations: Option<Vec<f64>>,
+    /// Why the last inner solve stopped short, if it did.
+    pub message: Option<String>,
 }
 
 /// The set-up of the nonsmooth CG: the decomposition, and the DD solver of
@@ -201,6 +207,9 @@ struct Step {
     dec: Option<Decomposition>,
     /// Key of each subdomain operator of `dd`.
     keys: Vec<OpKey>,
+    /// Element of the full model behind each element of `dec`'s structure
+    /// (`None`: the same numbering).
+    elements: Option<Vec<usize>>,
 }
 
 /// Interface forces keyed by `(lo, hi, global dof)`: decompositions of
@@ -339,6 +348,18 @@ impl NonsmoothCg {
         &self.dec
     }
 
+    /// Element elongations of the last outer step's solve, each from the
+    /// copy of the subdomain that holds it; elements outside that step's
+    /// structure (slack cables) from the assembled `u`.
+    fn local_elongations(&self, model: &Model, u: &[f64]) -> Option<Vec<f64>> {
+        let step = self.current.as_ref()?;
+        let mut out: Vec<f64> = (0..model.elements.len()).map(|e| model.elongation(e, u)).collect();
+        let dec = step.dec.as_ref().unwrap_or(&self.dec);
+        step.dd
+            .write_element_elongations(model, dec, step.elements.as_deref(), &mut out);
+        Some(out)
+    }
+
     /// The DD solver of the last outer step, if any (for its coarse
     /// residual and stages).
     pub fn last_solver(&self) -> Option<&DdSolver> {
@@ -401,6 +422,7 @@ impl NonsmoothCg {
                 dd: Box::new(dd),
                 dec: None,
                 keys,
+                elements: None,
             }
         } else {
             // A local mechanism at the cut can leave a round-off pivot that
@@ -413,10 +435,10 @@ impl NonsmoothCg {
             for repair in [true, false] {
                 match reduced_problem(model, own, slack, repair).and_then(|(lin, dec, keep)| {
                     let (dd, keys) = pool.setup(&lin, &dec, Some(&keep), &opts)?;
-                    Ok((dd, dec, keys))
+                    Ok((dd, dec, keys, keep))
                 }) {
-                    Ok((dd, dec, keys)) => {
-                        found = Some((dd, Some(dec), keys));
+                    Ok((dd, dec, keys, keep)) => {
+                        found = Some((dd, Some(dec), keys, Some(keep)));
                         break;
                     }
                     Err(e) => {
@@ -427,17 +449,18 @@ impl NonsmoothCg {
             if found.is_none() {
                 let lin = linear_model(model, slack, 0.0);
                 match pool.setup(&lin, own, None, &opts) {
-                    Ok((dd, keys)) => found = Some((dd, None, keys)),
+                    Ok((dd, keys)) => found = Some((dd, None, keys, None)),
                     Err(e) => return Err(first_err.unwrap_or(e)),
                 }
             }
-            let (dd, dec, keys) = found.expect("set above");
+            let (dd, dec, keys, elements) = found.expect("set above");
             Step {
                 slack: slack.to_vec(),
                 soft,
                 dd: Box::new(dd),
                 dec,
                 keys,
+                elements,
             }
         };
         Ok(step)
@@ -549,6 +572,7 @@ impl NonsmoothCg {
 
             // Strains and violations on the original cables.
             let u = out.u;
+            let inner_message = out.message;
             let mut scale = 0.0f64;
             for (c, &e) in model.cables.iter().enumerate() {
                 g[c] = model.elongation(e, &u) + model.elements[e].e0;
@@ -610,6 +634,7 @@ impl NonsmoothCg {
                     return Err(Error::Mechanism(mechanism.unwrap_or_default()));
                 }
                 let lambda = (0..nc).map(|c| if slack[c] { (-g[c]).max(0.0) } else { 0.0 }).collect();
+                let elongations = self.local_elongations(model, &u);
                 self.settled = Some(slack);
                 return Ok(NonsmoothOutcome {
                     equilibrium: Equilibrium {
@@ -623,11 +648,14 @@ impl NonsmoothCg {
                     setups,
                     factored: self.pool.factored,
                     reused: self.pool.reused,
+                    elongations,
+                    message: inner_message,
                 });
             }
             if !inner_converged && total >= self.opts.max_iterations {
                 // Budget spent with the set still moving: report the state.
                 let lambda = (0..nc).map(|c| if slack[c] { (-g[c]).max(0.0) } else { 0.0 }).collect();
+                let elongations = self.local_elongations(model, &u);
                 return Ok(NonsmoothOutcome {
                     equilibrium: Equilibrium {
                         u,
@@ -640,6 +668,8 @@ impl NonsmoothCg {
                     setups,
                     factored: self.pool.factored,
                     reused: self.pool.reused,
+                    elongations,
+                    message: inner_message,
                 });
             }
             if !murty && !seen.insert(slack.clone()) {

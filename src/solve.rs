@@ -211,10 +211,15 @@ impl Prepared {
                     status,
                     iterations: out.equilibrium.iterations,
                     history: out.history,
-                    message: None,
+                    message: (status != Status::Converged)
+                        .then(|| {
+                            out.message
+                                .map(|m| format!("the cg solve of the last cable set stopped: {m}"))
+                        })
+                        .flatten(),
                     search_direction: None,
                     outer_steps: Some((out.outer_steps, out.setups)),
-                    elongations: None,
+                    elongations: out.elongations,
                 })
             }
         }
