@@ -396,30 +396,20 @@ fn unchanged_subdomains_are_not_refactored() {
 }
 
 /// The README's nonsmooth tower (`gen tower nx=2 ny=2 nz=10`, 160 of 328
-/// cables slack) on 4 subdomains. Known open (issue 17): the inner cg of
-/// the final cable set stalls (indicator 2e-4 for 1e-9) and the result is
-/// `Stalled`, with the inner reason in its message. Its slack set is the
-/// direct solver's, and its tensions, measured in each element's own
-/// subdomain, agree with direct to 4e-7 (from the averaged displacement:
-/// 2.5e-5).
+/// cables slack, bars 1e4 × the cables) on 4 subdomains converges to 1e-9
+/// and matches the direct solve (slack set, displacements, tensions, KKT).
+/// It stalled in the inner cg of its final cable set (indicator 2e-4)
+/// while the weak nodes of the restricted partition were repaired first;
+/// tensions from the averaged displacement were 2.5e-5 off at that stall.
 #[test]
-fn readme_tower_stall_is_reported_with_accurate_tensions() {
+fn readme_tower_converges_like_direct() {
     let scene = tower(&TowerParams {
         nx: 2,
         ny: 2,
         nz: 10,
         ..Default::default()
     });
-    let direct = solve(&scene, &opts(Method::Direct, 1, 1e-9)).unwrap();
-    let mut o = opts(Method::Cg, 4, 1e-9);
-    o.max_iterations = 5000;
-    let cg = solve(&scene, &o).unwrap();
-    if !cg.converged {
-        let why = cg.stop_message.clone().unwrap_or_default();
-        assert!(why.contains("last cable set"), "{:?}: {why}", cg.status);
-    }
-    assert_eq!(cg.slack, direct.slack);
-    let eu = rel_err(&flat(&cg.displacements), &flat(&direct.displacements));
-    let et = rel_err(&cg.tensions, &direct.tensions);
-    assert!(eu < 1e-7 && et < 2e-6, "errors {eu:.2e} {et:.2e}");
+    let cg = check(&scene, 4, 1e-9);
+    assert!(cg.slack.iter().filter(|&&s| s).count() >= 150);
+    assert!(cg.iterations <= 400, "{} iterations", cg.iterations);
 }
