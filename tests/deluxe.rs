@@ -41,18 +41,25 @@ fn direct(scene: &Scene) -> SolveResult {
     solve(scene, &SolveOptions::default()).unwrap()
 }
 
+/// The README's tower, all cables taut (`gen tower nx=2 ny=2 nz=10
+/// unilateral=false`), bars 1e4, cables `ea_cable`.
+fn taut_tower(ea_cable: f64) -> Scene {
+    tower(&TowerParams {
+        nx: 2,
+        ny: 2,
+        nz: 10,
+        ea_cable,
+        unilateral: false,
+        ..Default::default()
+    })
+}
+
 /// The README's tower (`gen tower nx=2 ny=2 nz=10 unilateral=false`, 4
 /// subdomains): 60 iterations with the default (deluxe), 563 with the
 /// contrast weights; both agree with the direct solve.
 #[test]
 fn deluxe_converges_on_the_contrast_tower() {
-    let scene = tower(&TowerParams {
-        nx: 2,
-        ny: 2,
-        nz: 10,
-        unilateral: false,
-        ..Default::default()
-    });
+    let scene = taut_tower(1.0);
     let d = direct(&scene);
     assert_eq!(InterfaceScaling::default(), InterfaceScaling::Deluxe);
     let r = cg(&scene, 4, InterfaceScaling::default());
@@ -149,14 +156,7 @@ fn scene_setting_is_validated() {
 /// tensions from the averaged displacement were 7e-5 off.
 #[test]
 fn contrast_1e8_stops_at_its_floor_with_accurate_tensions() {
-    let scene = tower(&TowerParams {
-        nx: 2,
-        ny: 2,
-        nz: 10,
-        ea_cable: 1e-4,
-        unilateral: false,
-        ..Default::default()
-    });
+    let scene = taut_tower(1e-4);
     let d = direct(&scene);
     let r = cg(&scene, 4, InterfaceScaling::default());
     assert_eq!(r.status, Status::Stalled, "{:?}", r.stop_message);
@@ -174,13 +174,7 @@ fn contrast_1e8_stops_at_its_floor_with_accurate_tensions() {
 /// tensions from the averaged displacement were 1.4e-8 off.
 #[test]
 fn stalled_tower_tensions_match_direct() {
-    let scene = tower(&TowerParams {
-        nx: 2,
-        ny: 2,
-        nz: 10,
-        unilateral: false,
-        ..Default::default()
-    });
+    let scene = taut_tower(1.0);
     let d = direct(&scene);
     let r = cg(&scene, 16, InterfaceScaling::default());
     let (eu, et) = errors(&r, &d);

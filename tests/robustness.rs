@@ -724,12 +724,11 @@ fn tiny_stiffness_brace_matches_analytic() {
 
 // ---------------------------------------------------------------- hard decompositions
 
-#[test]
-fn floating_subdomains_match_direct() {
-    // Bands along x: only the first touches the supports.
-    let scene = planar_grid(6, Some(&|i, _| i / 2));
-    let model = Model::from_scene(&scene).unwrap();
-    let dec = decompose(&model, &scene, 1).unwrap();
+/// Kernel dimension of every subdomain of the multilevel set-up of `scene`
+/// decomposed into `subdomains` parts.
+fn kernel_dims(scene: &Scene, subdomains: usize) -> Vec<usize> {
+    let model = Model::from_scene(scene).unwrap();
+    let dec = decompose(&model, scene, subdomains).unwrap();
     let dd = DdSolver::new(
         &model,
         &dec,
@@ -744,7 +743,14 @@ fn floating_subdomains_match_direct() {
         },
     )
     .unwrap();
-    let dims = &dd.stats().kernel_dims;
+    dd.stats().kernel_dims.clone()
+}
+
+#[test]
+fn floating_subdomains_match_direct() {
+    // Bands along x: only the first touches the supports.
+    let scene = planar_grid(6, Some(&|i, _| i / 2));
+    let dims = &kernel_dims(&scene, 1);
     assert_eq!(dims[0], 0);
     assert!(dims[1] > 0 && dims[2] > 0, "kernel dims {dims:?}");
     matches_direct(&scene, Method::Multilevel, 3, 1e-8);
@@ -1351,23 +1357,7 @@ fn subdomain_kernels_do_not_depend_on_stiffness_contrast() {
             unilateral: false,
             ..Default::default()
         });
-        let model = Model::from_scene(&scene).unwrap();
-        let dec = decompose(&model, &scene, 4).unwrap();
-        let dd = DdSolver::new(
-            &model,
-            &dec,
-            DdOptions {
-                coarse: true,
-                tolerance: 1e-8,
-                max_iterations: 10,
-                search_direction: SearchDirection::Auto,
-                krylov: true,
-                preconditioner: Default::default(),
-                interface_scaling: Default::default(),
-            },
-        )
-        .unwrap();
-        dd.stats().kernel_dims.clone()
+        kernel_dims(&scene, 4)
     };
     let reference = dims(1.0);
     assert!(
