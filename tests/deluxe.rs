@@ -3,7 +3,10 @@
 //! pointwise weights need ~10× the iterations, and every scaling agrees with
 //! the direct solver. The setting is validated with an error naming it.
 
-use nsdd::generate::{grid, tower, GridParams, TowerParams};
+mod common;
+
+use common::taut_tower;
+use nsdd::generate::{grid, GridParams};
 use nsdd::outcome::Status;
 use nsdd::result::SolveResult;
 use nsdd::scene::{InterfaceScaling, Method, Scene};
@@ -39,19 +42,6 @@ fn cg(scene: &Scene, subdomains: usize, scaling: InterfaceScaling) -> SolveResul
 
 fn direct(scene: &Scene) -> SolveResult {
     solve(scene, &SolveOptions::default()).unwrap()
-}
-
-/// The README's tower, all cables taut (`gen tower nx=2 ny=2 nz=10
-/// unilateral=false`), bars 1e4, cables `ea_cable`.
-fn taut_tower(ea_cable: f64) -> Scene {
-    tower(&TowerParams {
-        nx: 2,
-        ny: 2,
-        nz: 10,
-        ea_cable,
-        unilateral: false,
-        ..Default::default()
-    })
 }
 
 /// The README's tower (`gen tower nx=2 ny=2 nz=10 unilateral=false`, 4

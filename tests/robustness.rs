@@ -1347,18 +1347,7 @@ fn solve_options_given_in_rust_are_checked_like_the_scene() {
 /// cables' ones) and one was factored as a soft pivot.
 #[test]
 fn subdomain_kernels_do_not_depend_on_stiffness_contrast() {
-    use nsdd::generate::{tower, TowerParams};
-    let dims = |ea_cable: f64| {
-        let scene = tower(&TowerParams {
-            nx: 2,
-            ny: 2,
-            nz: 10,
-            ea_cable,
-            unilateral: false,
-            ..Default::default()
-        });
-        kernel_dims(&scene, 4)
-    };
+    let dims = |ea_cable: f64| kernel_dims(&taut_tower(ea_cable), 4);
     let reference = dims(1.0);
     assert!(
         reference.iter().any(|&k| k > 6),

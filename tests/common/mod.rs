@@ -233,3 +233,16 @@ pub fn cable_terms(problem: &nsdd::dd::DdProblem) -> Vec<(usize, nsdd::dd::Cable
         })
         .collect()
 }
+
+/// The README's tower with every cable taut (`gen tower nx=2 ny=2 nz=10
+/// unilateral=false`): bars 1e4, cables `ea_cable`.
+pub fn taut_tower(ea_cable: f64) -> Scene {
+    nsdd::generate::tower(&nsdd::generate::TowerParams {
+        nx: 2,
+        ny: 2,
+        nz: 10,
+        ea_cable,
+        unilateral: false,
+        ..Default::default()
+    })
+}
