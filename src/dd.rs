@@ -333,6 +333,12 @@ pub struct DdSolver {
     stats: DdStats,
     /// The CG method's workspace (`None` unless the method is cg).
     pub(crate) cg: Option<CgWorkspace>,
+    /// Whether cg must certify its tolerance (energy estimate from its
+    /// coefficients) or may stop on the indicator alone: the nonsmooth
+    /// CG's loose solves of cable sets that are still moving, whose
+    /// result only guides the next set (the settled set is solved at the
+    /// tolerance with the certificate).
+    pub(crate) certify: bool,
 }
 
 /// The global dof that moves most in the mode `Σ_E R_E α_E`, given per
@@ -660,6 +666,7 @@ impl DdSolver {
             dof_maps: dec.subdomains.iter().map(|s| s.dofs.clone()).collect(),
             stats,
             cg: None,
+            certify: true,
         };
         if solver.opts.krylov {
             solver.cg = Some(CgWorkspace::new(
@@ -712,6 +719,12 @@ impl DdSolver {
     pub fn set_stopping(&mut self, tolerance: f64, max_iterations: usize) {
         self.opts.tolerance = tolerance;
         self.opts.max_iterations = max_iterations;
+    }
+
+    /// See [`DdSolver::certify`]: `false` lets cg stop as soon as its
+    /// indicator meets the tolerance.
+    pub(crate) fn set_certified_stop(&mut self, certify: bool) {
+        self.certify = certify;
     }
 
     /// The interface forces of the last solve, interfaces one after the

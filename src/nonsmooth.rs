@@ -548,6 +548,7 @@ impl NonsmoothCg {
             let dec = step.dec.as_ref().unwrap_or(&self.dec);
             let dd = &mut step.dd;
             dd.set_stopping(inner_tol, budget);
+            dd.set_certified_stop(!(inner_tol > tol));
             if let Some(c) = dd.coarse_problem_mut() {
                 c.set_refinement_target(COARSE_TARGET_FACTOR * inner_tol);
             }

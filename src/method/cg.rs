@@ -200,12 +200,13 @@ impl DdSolver {
             // once restarts or a stall show the residual is on the floor
             // that round-off allows (it cannot fall further).
             let tol = self.opts.tolerance;
-            converged = cg_stopping::indicator_allows(indicator, tol) && {
-                let (jump_energy, load_energy) = self.cg_energies(ws);
-                energy_terms.tail().is_some_and(|tail| {
-                    cg_stopping::certified(cg_stopping::relative_energy_error(jump_energy, tail, load_energy), tol)
-                })
-            };
+            converged = (!self.certify && indicator <= tol)
+                || cg_stopping::indicator_allows(indicator, tol) && {
+                    let (jump_energy, load_energy) = self.cg_energies(ws);
+                    energy_terms.tail().is_some_and(|tail| {
+                        cg_stopping::certified(cg_stopping::relative_energy_error(jump_energy, tail, load_energy), tol)
+                    })
+                };
             converged = converged
                 || (indicator <= tol
                     && (restarts >= 2 || stalled(&history[history.len() - (iterations - restart_at)..])));
