@@ -504,6 +504,7 @@ impl NonsmoothCg {
         let mut murty = false;
         // Relative size of the last violation; none measured yet.
         let mut violation = f64::INFINITY;
+        let mut last_at_tol = false;
         let max_outer = 20 * nc + 100;
         let mut g = vec![0.0; nc];
         loop {
@@ -513,7 +514,15 @@ impl NonsmoothCg {
                     "cable active set did not settle in {max_outer} outer steps"
                 )));
             }
-            let inner_tol = (INNER_TOL_FACTOR * violation).clamp(tol, INNER_TOL_MAX.max(tol));
+            // Once a set has been solved at the tolerance, the few flips
+            // left are the endgame: solve the next set at the tolerance
+            // too rather than loosely and then again to confirm it.
+            let inner_tol = if last_at_tol {
+                tol
+            } else {
+                (INNER_TOL_FACTOR * violation).clamp(tol, INNER_TOL_MAX.max(tol))
+            };
+            last_at_tol = !(inner_tol > tol);
             // A set that leaves a mechanism is taken softened (a guide step).
             let mut mechanism: Option<String> = None;
             let t_setup = std::time::Instant::now();

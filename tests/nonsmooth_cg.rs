@@ -411,7 +411,10 @@ fn readme_tower_converges_like_direct() {
     });
     let cg = check(&scene, 4, 1e-9);
     assert!(cg.slack.iter().filter(|&&s| s).count() >= 150);
-    assert!(cg.iterations <= 400, "{} iterations", cg.iterations);
+    // 182 (6 active-set steps) against 62 for the all-taut twin: within
+    // issue 17's 3× (248 before the endgame steps went straight to the
+    // tolerance).
+    assert!(cg.iterations <= 186, "{} iterations", cg.iterations);
 }
 
 /// Issue 17's measure: iterations of the nonsmooth cg against the linear
