@@ -13,9 +13,11 @@
 //!
 //! The inner solves are inexact: their tolerance follows the size of the
 //! last complementarity violation (loose while the set moves, the
-//! requested tolerance once it has settled), and each starts from the
-//! interface forces of the previous one. The set is accepted only after a
-//! solve to the requested tolerance leaves it unchanged.
+//! requested tolerance once it has settled, and from the first solve at
+//! that tolerance on), and each starts from the interface forces of the
+//! previous one. A loose solve stops on its indicator alone; the set is
+//! accepted only after a certified solve to the requested tolerance
+//! leaves it unchanged.
 //!
 //! Each new slack set gets a new [`DdSolver`] (macro space and coarse
 //! problem rebuilt), but only the subdomains whose elements or local dof
