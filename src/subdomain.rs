@@ -49,10 +49,12 @@ pub const SUBDOMAIN_PIVOT_RATIO: f64 = 1e-9;
 /// contrast). The two are told apart by [`MECHANISM_TOL`].
 pub const SUSPECT_PIVOT_RATIO: f64 = 1e-6;
 
-/// `‖K r‖ / (max diag K ‖r‖)` at most this for the kernel vector `r` of a
-/// suspect pivot means a mechanism (round-off leaves ~1e-16 … 1e-13);
-/// above it, the pivot is a genuine soft stiffness and stays in the
-/// factorization.
+/// A direction `x` in the span of the suspects' kernel columns with
+/// `xᵀ K x / (max diag K ‖x‖²)` at most this is a mechanism (round-off
+/// leaves ~1e-17 once the columns are refined); above it, genuine soft
+/// stiffness, which stays in the factorization. Beyond
+/// [`MAX_SPAN_TEST`] suspects each column is judged alone, by
+/// `‖K r‖ / (max diag K ‖r‖)`.
 pub const MECHANISM_TOL: f64 = 1e-11;
 
 /// Relative size of `‖K r‖ / (‖K‖ ‖r‖)` above which a computed kernel
@@ -458,7 +460,7 @@ fn mechanism_dofs_by_span(
     let s = Mat::from_fn(m, m, |i, j| 0.5 * (s[(i, j)] + s[(j, i)]));
     // G = V Λ Vᵀ, W = V Λ^{-1/2}: C = Wᵀ S W has the energy quotients of
     // `x = B W y` as eigenvalues.
-    let (Ok(ge), true) = (g.self_adjoint_eigen(faer::Side::Lower), m > 0) else {
+    let Ok(ge) = g.self_adjoint_eigen(faer::Side::Lower) else {
         return mechanism_dofs_by_column(stiffness, fixing, cols, scale);
     };
     let (gv, gl) = (ge.U(), ge.S().column_vector());
@@ -474,8 +476,11 @@ fn mechanism_dofs_by_span(
     };
     let (cy, cl) = (ce.U(), ce.S().column_vector());
     let k = (0..m).filter(|&t| cl[t] <= MECHANISM_TOL * scale).count();
-    if k == 0 || k == m {
-        return if k == 0 { Vec::new() } else { fixing.to_vec() };
+    if k == 0 {
+        return Vec::new();
+    }
+    if k == m {
+        return fixing.to_vec();
     }
     // Value of mechanism t at suspect i: (B W y_t)[fixing[i]] = (W y_t)_i / norms_i.
     let z = &w * cy.get(.., 0..k);
