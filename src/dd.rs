@@ -842,18 +842,9 @@ impl DdSolver {
         out: &mut [f64],
     ) {
         for (sd, st) in dec.subdomains.iter().zip(&self.op.subs) {
-            let value = |d: usize| {
-                if d == FIXED {
-                    0.0
-                } else {
-                    sd.local(d).map_or(0.0, |l| st.v[l])
-                }
-            };
             for &e in &sd.elements {
                 let e = ids.map_or(e, |ids| ids[e]);
-                let dofs = model.element_dofs(e);
-                let n = model.elements[e].dir;
-                out[e] = (0..3).map(|c| n[c] * (value(dofs[3 + c]) - value(dofs[c]))).sum();
+                out[e] = model.elongation_by(e, |d| sd.local(d).map_or(0.0, |l| st.v[l]));
             }
         }
     }

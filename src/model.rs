@@ -271,15 +271,21 @@ impl Model {
     /// Elongation `e = n · (u_b − u_a)` from a free-dof displacement.
     #[inline]
     pub fn elongation(&self, e: usize, u: &[f64]) -> f64 {
+        self.elongation_by(e, |d| u[d])
+    }
+
+    /// [`Self::elongation`] with the displacement of each free dof of the
+    /// element read by `u` (e.g. from one subdomain's copy).
+    pub fn elongation_by(&self, e: usize, u: impl Fn(usize) -> f64) -> f64 {
         let dofs = self.element_dofs(e);
         let n = self.elements[e].dir;
         let mut s = 0.0;
         for d in 0..3 {
             if dofs[3 + d] != FIXED {
-                s += n[d] * u[dofs[3 + d]];
+                s += n[d] * u(dofs[3 + d]);
             }
             if dofs[d] != FIXED {
-                s -= n[d] * u[dofs[d]];
+                s -= n[d] * u(dofs[d]);
             }
         }
         s
