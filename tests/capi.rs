@@ -1686,8 +1686,9 @@ fn c_examples() {
 }
 
 /// `nsdd_result_stop_reason` names why a run stopped: the README's tower
-/// with cg on 16 subdomains stalls before its limit (539 iterations; with
-/// 4 it converges since issue 18's scaled preconditioner), a limit of 3 runs out,
+/// with cg on 16 subdomains stalls before its limit (342 iterations, on
+/// the round-off floor of its force balance; with 4 it converges since
+/// issue 18's scaled preconditioner), a limit of 3 runs out,
 /// the direct method converges; the value matches the Rust result.
 #[test]
 fn result_stop_reason() {

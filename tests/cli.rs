@@ -415,8 +415,8 @@ fn unconverged_solve_writes_result_and_exits_5() {
 }
 
 /// The README's tower with cg on 16 subdomains gives up (stalled) long
-/// before its iteration limit (372 iterations with the deluxe scaling, 539
-/// with contrast; with 4 it converges since issue 18's scaled
+/// before its iteration limit (342 iterations with the deluxe scaling, on
+/// the round-off floor of its force balance; with 4 it converges since issue 18's scaled
 /// preconditioner); the result and the message say why, and a
 /// tiny limit is reported as such.
 #[test]
