@@ -564,6 +564,7 @@ impl AlgebraicProblem {
             decomposition: &dec,
             operators,
             loads,
+            placement: crate::comm::Placement::Process,
             dof_points,
             n_cables: self.cables.len(),
         };

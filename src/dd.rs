@@ -19,6 +19,7 @@
 //! allocate.
 
 use crate::coarse::{CoarseContribution, CoarseProblem, MacroBasis};
+use crate::comm::{Communicator, Placement, Seam};
 use crate::decomposition::Decomposition;
 use crate::error::{Error, Result};
 use crate::kernels::{self, Run};
@@ -134,10 +135,16 @@ pub struct SubdomainLoad {
 /// A DD problem in algebraic form: factored subdomain operators, their
 /// global dof ids (through the decomposition), the point and component of
 /// every global dof (for the macro modes), and the cable columns.
+///
+/// `operators` and `loads` are those of the subdomains this process owns
+/// (`placement.owned(decomposition.len())`, in order): all of them with
+/// [`Placement::Process`], a rank's block under MPI.
 pub struct DdProblem<'a> {
     pub decomposition: &'a Decomposition,
     pub operators: Vec<SubdomainOperator>,
     pub loads: Vec<SubdomainLoad>,
+    /// Where the subdomains live.
+    pub placement: Placement,
     /// Point and component (0..3) of each global dof.
     pub dof_points: Vec<([f64; 3], usize)>,
     pub n_cables: usize,
@@ -147,7 +154,7 @@ impl<'a> DdProblem<'a> {
     /// Builds the algebraic problem of a truss model (factors every
     /// subdomain in parallel).
     pub fn from_model(model: &Model, dec: &'a Decomposition) -> Result<DdProblem<'a>> {
-        Self::from_model_reusing(model, dec, Vec::new())
+        Self::from_model_reusing(model, dec, Vec::new(), Placement::Process)
     }
 
     /// [`Self::from_model`], taking `reused[s]` (when `Some`) as subdomain
@@ -155,32 +162,35 @@ impl<'a> DdProblem<'a> {
     /// set-up whose subdomain had the same elements (same stiffness) and
     /// the same local dof layout, which the caller vouches for (the
     /// nonsmooth CG refactors only the subdomains whose slack cables
-    /// changed). Missing entries are factored.
+    /// changed). Missing entries are factored. Only the subdomains
+    /// `placement` gives this process are factored (`reused` is indexed by
+    /// their position in that block); a failure on any process is returned
+    /// on every process.
     pub fn from_model_reusing(
         model: &Model,
         dec: &'a Decomposition,
         mut reused: Vec<Option<SubdomainOperator>>,
+        placement: Placement,
     ) -> Result<DdProblem<'a>> {
-        reused.resize_with(dec.len(), || None);
-        let ops: Vec<Result<SubdomainOperator>> = dec
-            .subdomains
+        let owned = placement.owned(dec.len());
+        reused.resize_with(owned.len(), || None);
+        let ops: Vec<Result<SubdomainOperator>> = dec.subdomains[owned.clone()]
             .par_iter()
             .zip(reused.into_par_iter())
             .enumerate()
-            .map(|(i, (sd, op))| match op {
-                Some(mut op) if op.n() == sd.dofs.len() => {
-                    op.id = i;
-                    Ok(op)
+            .map(|(k, (sd, op))| {
+                let i = owned.start + k;
+                match op {
+                    Some(mut op) if op.n() == sd.dofs.len() => {
+                        op.id = i;
+                        Ok(op)
+                    }
+                    _ => SubdomainOperator::new(i, model, sd, 64),
                 }
-                _ => SubdomainOperator::new(i, model, sd, 64),
             })
             .collect();
-        let mut operators = Vec::with_capacity(ops.len());
-        for op in ops {
-            operators.push(op?);
-        }
-        let loads = dec
-            .subdomains
+        let operators = placement.agree(ops.into_iter().collect::<Result<Vec<_>>>())?;
+        let loads = dec.subdomains[owned]
             .iter()
             .map(|sd| {
                 let n = sd.dofs.len();
@@ -225,6 +235,7 @@ impl<'a> DdProblem<'a> {
             decomposition: dec,
             operators,
             loads,
+            placement,
             dof_points,
             n_cables: model.cables.len(),
         })
@@ -320,7 +331,7 @@ pub struct DdStats {
 pub struct DdSolver {
     /// Subdomain operators, interfaces, coarse problem and the
     /// communication seam: what the methods apply.
-    pub(crate) op: InterfaceOperator,
+    pub(crate) op: InterfaceOperator<Seam>,
     /// Interface forces `F` (per interface) of the last solve: where a
     /// `warm` solve starts.
     pub(crate) forces: Vec<Vec<f64>>,
@@ -329,7 +340,10 @@ pub struct DdSolver {
     pub(crate) opts: DdOptions,
     n_free: usize,
     pub(crate) n_cables: usize,
+    /// Global dof of each local dof, for every subdomain (held here or not).
     pub(crate) dof_maps: Vec<Vec<usize>>,
+    /// Multiplicity of each local dof, for every subdomain.
+    pub(crate) multiplicity: Vec<Vec<u32>>,
     stats: DdStats,
     /// The CG method's workspace (`None` unless the method is cg).
     pub(crate) cg: Option<CgWorkspace>,
@@ -359,11 +373,54 @@ fn largest_motion(modes: &[(&Mat<f64>, &[usize], &[f64])]) -> Option<usize> {
     best.filter(|&(v, _)| v > 0.0).map(|(_, d)| d)
 }
 
+/// [`CoarseContribution`]s as one vector of numbers, to gather them from
+/// every process: per subdomain `alpha_off, m, r`, the `m` columns, then
+/// `L` and `G` column by column. Indices are below 2⁵³, exact in an f64.
+fn pack_contributions(parts: &[CoarseContribution]) -> Vec<f64> {
+    let mut v = Vec::new();
+    for p in parts {
+        let (m, r) = (p.cols.len(), p.g.ncols());
+        v.extend([p.alpha_off as f64, m as f64, r as f64]);
+        v.extend(p.cols.iter().map(|&c| c as f64));
+        for j in 0..m {
+            v.extend(p.l.col(j).iter());
+        }
+        for j in 0..r {
+            v.extend(p.g.col(j).iter());
+        }
+    }
+    v
+}
+
+/// The inverse of [`pack_contributions`].
+fn unpack_contributions(v: &[f64]) -> Vec<CoarseContribution> {
+    let mut out = Vec::new();
+    let mut k = 0;
+    while k < v.len() {
+        let (alpha_off, m, r) = (v[k] as usize, v[k + 1] as usize, v[k + 2] as usize);
+        k += 3;
+        let cols = v[k..k + m].iter().map(|&c| c as usize).collect();
+        k += m;
+        let l = Mat::from_fn(m, m, |i, j| v[k + j * m + i]);
+        k += m * m;
+        let g = Mat::from_fn(m, r, |i, j| v[k + j * m + i]);
+        k += m * r;
+        out.push(CoarseContribution { cols, l, g, alpha_off });
+    }
+    out
+}
+
 impl DdSolver {
     /// Sets up a truss model: factors every subdomain, builds the macro
     /// basis and the coarse problem (multilevel), and picks `d`.
     pub fn new(model: &Model, dec: &Decomposition, opts: DdOptions) -> Result<DdSolver> {
-        Self::new_reusing(model, dec, opts, Vec::new())
+        Self::new_reusing(model, dec, opts, Vec::new(), Placement::Process)
+    }
+
+    /// [`Self::new`] with the subdomains placed as `placement` says (under
+    /// MPI each rank sets up its own block; every rank calls this).
+    pub fn new_in(model: &Model, dec: &Decomposition, opts: DdOptions, placement: Placement) -> Result<DdSolver> {
+        Self::new_reusing(model, dec, opts, Vec::new(), placement)
     }
 
     /// [`Self::new`] with some subdomain operators taken from an earlier
@@ -374,9 +431,10 @@ impl DdSolver {
         dec: &Decomposition,
         opts: DdOptions,
         reused: Vec<Option<SubdomainOperator>>,
+        placement: Placement,
     ) -> Result<DdSolver> {
         let t0 = Instant::now();
-        let problem = DdProblem::from_model_reusing(model, dec, reused)?;
+        let problem = DdProblem::from_model_reusing(model, dec, reused, placement)?;
         let factor_s = t0.elapsed().as_secs_f64();
         let name_dof = |d: usize| {
             let (node, c) = model.dof_owner(d);
@@ -405,21 +463,47 @@ impl DdSolver {
             decomposition: dec,
             operators,
             loads,
+            placement,
             dof_points,
             n_cables,
         } = problem;
         let ns = dec.len();
         let n_free = dof_points.len();
-        let singular: Vec<usize> = operators.iter().filter(|o| o.kernel_dim() > 0).map(|o| o.id).collect();
-        if !singular.is_empty() && ns == 1 {
-            let r = operators[0].kernel();
-            let e0: Vec<f64> = (0..r.ncols()).map(|j| if j == 0 { 1.0 } else { 0.0 }).collect();
-            let at = largest_motion(&[(r, &dec.subdomains[0].dofs, &e0)])
-                .map(|d| format!(" (a free motion, largest at {})", name_dof(d)))
-                .unwrap_or_default();
-            return Err(Error::Mechanism(format!(
-                "the structure is not supported well enough: its stiffness is singular{at}"
+        let seam = placement.seam(dec);
+        let owned = seam.owned();
+        let first = owned.start;
+        if operators.len() != owned.len() || loads.len() != owned.len() {
+            return seam.agree(Err(Error::input(
+                "operators",
+                None,
+                format!(
+                    "{} operators and {} loads given for the {} subdomains {}..{} of this process",
+                    operators.len(),
+                    loads.len(),
+                    owned.len(),
+                    owned.start,
+                    owned.end
+                ),
             )));
+        }
+        seam.agree(Ok(()))?;
+        // Kernel dimensions of every subdomain (each process factored its own).
+        let local_dims: Vec<f64> = operators.iter().map(|o| o.kernel_dim() as f64).collect();
+        let kernel_dims: Vec<usize> = seam.gather(&local_dims).into_iter().map(|d| d as usize).collect();
+        let singular = kernel_dims.iter().any(|&r| r > 0);
+        if singular && ns == 1 {
+            // One subdomain: rank 0 holds it, and every process fails
+            // with its message (the lowest failing rank's).
+            let at = operators.first().map_or(String::new(), |op| {
+                let r = op.kernel();
+                let e0: Vec<f64> = (0..r.ncols()).map(|j| if j == 0 { 1.0 } else { 0.0 }).collect();
+                largest_motion(&[(r, &dec.subdomains[0].dofs, &e0)])
+                    .map(|d| format!(" (a free motion, largest at {})", name_dof(d)))
+                    .unwrap_or_default()
+            });
+            return seam.agree(Err(Error::Mechanism(format!(
+                "the structure is not supported well enough: its stiffness is singular{at}"
+            ))));
         }
 
         if opts.krylov && n_cables > 0 {
@@ -437,9 +521,11 @@ impl DdSolver {
         // kernels, no geometric macro modes); with regular subdomains it
         // has none. Multilevel adds the macro space.
         let natural_only = !opts.coarse;
-        let use_coarse = (opts.coarse || !singular.is_empty()) && !dec.interfaces.is_empty();
+        let use_coarse = (opts.coarse || singular) && !dec.interfaces.is_empty();
         let t_coarse = Instant::now();
-        // Interfaces and their macro bases.
+        let local = |s: usize| owned.contains(&s).then(|| s - first);
+        // Interfaces and their macro bases (every interface is listed; only
+        // the ones with a subdomain here are filled in).
         let mut ifaces: Vec<IfaceState> = dec
             .interfaces
             .iter()
@@ -461,17 +547,35 @@ impl DdSolver {
                 force_norm2: 0.0,
             })
             .collect();
+        let touched = |it: &IfaceState| local(it.lo).is_some() || local(it.hi).is_some();
+        let mut n_macro = 0;
         if use_coarse {
-            let blocks: Vec<Mat<f64>> = dec
+            // Each side's kernel on the interface entries (column-major).
+            let traces = seam.exchange(|i, is_lo| {
+                let it = &ifaces[i];
+                let (s, idx) = if is_lo {
+                    (it.lo, &it.lo_idx)
+                } else {
+                    (it.hi, &it.hi_idx)
+                };
+                let r = operators[s - first].kernel();
+                (0..r.ncols())
+                    .flat_map(|q| idx.iter().map(move |&l| r[(l as usize, q)]))
+                    .collect()
+            });
+            let blocks: Vec<Option<Mat<f64>>> = dec
                 .interfaces
                 .par_iter()
                 .zip(ifaces.par_iter())
-                .map(|(it, st)| {
-                    let rlo = operators[it.lo].kernel();
-                    let rhi = operators[it.hi].kernel();
-                    let tlo = Mat::from_fn(it.len(), rlo.ncols(), |j, q| rlo[(st.lo_idx[j] as usize, q)]);
-                    let thi = Mat::from_fn(it.len(), rhi.ncols(), |j, q| rhi[(st.hi_idx[j] as usize, q)]);
-                    if natural_only {
+                .zip(traces.par_iter())
+                .map(|((it, st), [tl, th])| {
+                    if !touched(st) {
+                        return None;
+                    }
+                    let n = it.len();
+                    let tlo = Mat::from_fn(n, kernel_dims[it.lo], |j, q| tl[q * n + j]);
+                    let thi = Mat::from_fn(n, kernel_dims[it.hi], |j, q| th[q * n + j]);
+                    Some(if natural_only {
                         // No geometric modes: no dof points needed (the
                         // algebraic level may not have them).
                         MacroBasis::kernel_block(&tlo, &thi)
@@ -479,23 +583,45 @@ impl DdSolver {
                         let dofs = &dec.entry_dof[it.start..it.end];
                         let (points, comp): (Vec<[f64; 3]>, Vec<usize>) = dofs.iter().map(|&d| dof_points[d]).unzip();
                         MacroBasis::interface_block(&points, &comp, &tlo, &thi)
-                    }
+                    })
                 })
                 .collect();
-            let basis = MacroBasis::from_blocks(blocks);
-            for (i, st) in ifaces.iter_mut().enumerate() {
-                st.macro_off = basis.offset[i];
-                st.pt = vec![0.0; basis.blocks[i].ncols()];
+            drop(traces);
+            // Macro offsets need every interface's width: the process of
+            // its `lo` subdomain tells.
+            let widths: Vec<f64> = blocks
+                .iter()
+                .zip(&ifaces)
+                .enumerate()
+                .filter(|(_, (_, st))| local(st.lo).is_some())
+                .flat_map(|(i, (b, _))| [i as f64, b.as_ref().map_or(0, |b| b.ncols()) as f64])
+                .collect();
+            let mut width = vec![0usize; ifaces.len()];
+            for pair in seam.gather(&widths).chunks_exact(2) {
+                width[pair[0] as usize] = pair[1] as usize;
             }
-            for (st, p) in ifaces.iter_mut().zip(basis.blocks) {
-                st.p = p;
+            let mut off = 0;
+            for ((st, b), w) in ifaces.iter_mut().zip(blocks).zip(&width) {
+                st.macro_off = off;
+                off += w;
+                if let Some(p) = b {
+                    st.pt = vec![0.0; p.ncols()];
+                    st.p = p;
+                }
             }
+            n_macro = off;
         }
 
-        // Per-subdomain state.
+        // Per-subdomain state, for the subdomains held here.
+        let mut alpha_offsets = Vec::with_capacity(ns);
         let mut alpha_off = 0;
-        let mut subs: Vec<SubState> = Vec::with_capacity(ns);
-        for (s, (op, load)) in operators.into_iter().zip(loads).enumerate() {
+        for &r in &kernel_dims {
+            alpha_offsets.push(alpha_off);
+            alpha_off += r;
+        }
+        let mut subs: Vec<SubState> = Vec::with_capacity(owned.len());
+        for (k, (op, load)) in operators.into_iter().zip(loads).enumerate() {
+            let s = first + k;
             let sd = &dec.subdomains[s];
             let n = op.n();
             let ifs: Vec<(usize, bool)> = sd.interfaces.iter().map(|&i| (i, dec.interfaces[i].lo == s)).collect();
@@ -519,7 +645,7 @@ impl DdSolver {
                 z: Mat::zeros(0, 0),
                 macro_cols: Vec::new(),
                 fm: Vec::new(),
-                alpha_off,
+                alpha_off: alpha_offsets[s],
                 alpha: vec![0.0; r],
                 rt_r: vec![0.0; r],
                 e0: cables.iter().map(|c| c.e0).collect(),
@@ -533,20 +659,23 @@ impl DdSolver {
                 interior: None,
                 op,
             });
-            alpha_off += r;
         }
 
         let diags: Vec<Vec<f64>> = subs.iter().map(|s| s.op.diagonal()).collect();
-        for it in ifaces.iter_mut() {
-            it.stiffness = it
-                .lo_idx
-                .iter()
-                .zip(&it.hi_idx)
-                .map(|(&a, &b)| diags[it.lo][a as usize] + diags[it.hi][b as usize])
-                .collect();
+        let sides = seam.exchange(|i, is_lo| {
+            let it = &ifaces[i];
+            let (s, idx) = if is_lo {
+                (it.lo, &it.lo_idx)
+            } else {
+                (it.hi, &it.hi_idx)
+            };
+            idx.iter().map(|&l| diags[s - first][l as usize]).collect()
+        });
+        for (it, [lo, hi]) in ifaces.iter_mut().zip(sides) {
+            it.stiffness = lo.iter().zip(&hi).map(|(a, b)| a + b).collect();
         }
         let lumped = matches!(opts.search_direction, SearchDirection::Auto);
-        for (s, st) in subs.iter_mut().enumerate() {
+        for (k, st) in subs.iter_mut().enumerate() {
             let mut dofs: Vec<u32> = Vec::new();
             for &(i, is_lo) in &st.ifaces {
                 dofs.extend(if is_lo { &ifaces[i].lo_idx } else { &ifaces[i].hi_idx });
@@ -555,17 +684,15 @@ impl DdSolver {
             dofs.dedup();
             st.iface_dofs = dofs;
             if lumped {
-                st.weight = diags[s].clone();
+                st.weight = diags[k].clone();
             }
         }
         drop(diags);
 
         // Coarse operator from one batched multi-RHS solve per subdomain.
         let mut coarse = None;
-        let mut n_macro = 0;
         if use_coarse {
-            n_macro = ifaces.iter().map(|i| i.p.ncols()).sum();
-            let parts: Vec<CoarseContribution> = subs
+            let local_parts: Vec<CoarseContribution> = subs
                 .par_iter_mut()
                 .map(|st| {
                     let n = st.op.n();
@@ -611,15 +738,21 @@ impl DdSolver {
                     }
                 })
                 .collect();
+            // Every process assembles and factors the whole coarse problem
+            // from every subdomain's contribution (in subdomain order).
+            let parts = seam.gather(&pack_contributions(&local_parts));
+            drop(local_parts);
+            let parts = unpack_contributions(&parts);
             let n_alpha = alpha_off;
             let mut owner = vec![0usize; n_alpha];
             for (s, p) in parts.iter().enumerate() {
                 owner[p.alpha_off..p.alpha_off + p.g.ncols()].fill(s);
             }
             let describe = |alpha: &[f64]| {
+                // The subdomains held here (rank 0's message is the one shown).
                 let modes: Vec<_> = subs
                     .iter()
-                    .zip(&dec.subdomains)
+                    .zip(&dec.subdomains[owned.clone()])
                     .map(|(st, sd)| {
                         (
                             st.op.kernel(),
@@ -632,18 +765,19 @@ impl DdSolver {
                     .map(|d| format!(" (largest motion at {})", name_dof(d)))
                     .unwrap_or_default()
             };
-            coarse = Some(CoarseProblem::new_described(
+            coarse = Some(seam.agree(CoarseProblem::new_described(
                 n_macro, n_alpha, &parts, &owner, &describe,
-            )?);
+            ))?);
         }
 
+        let nnz_l = seam.gather(&[subs.iter().map(|s| s.op.nnz_l() as f64).sum::<f64>()]);
         let stats = DdStats {
             subdomains: ns,
-            kernel_dims: subs.iter().map(|s| s.op.kernel_dim()).collect(),
+            kernel_dims: kernel_dims.clone(),
             macro_unknowns: n_macro,
             kernel_unknowns: alpha_off,
             interface_entries: dec.n_entries(),
-            nnz_l: subs.iter().map(|s| s.op.nnz_l()).sum(),
+            nnz_l: nnz_l.iter().sum::<f64>() as usize,
             search_direction: 0.0,
             setup_s: 0.0,
             factor_s: 0.0,
@@ -656,14 +790,24 @@ impl DdSolver {
             scaling_s: 0.0,
         };
         let forces = ifaces.iter().map(|it| vec![0.0; it.lo_idx.len()]).collect();
+        let entry_inv_mult = dec
+            .interfaces
+            .iter()
+            .zip(&ifaces)
+            .map(|(it, st)| {
+                let m = &dec.subdomains[it.lo].multiplicity;
+                st.lo_idx.iter().map(|&a| 1.0 / m[a as usize] as f64).collect()
+            })
+            .collect();
         let mut solver = DdSolver {
-            op: InterfaceOperator::new(subs, ifaces, coarse),
+            op: InterfaceOperator::with_seam(subs, ifaces, coarse, seam, entry_inv_mult),
             forces,
             d: 0.0,
             opts,
             n_free,
             n_cables,
             dof_maps: dec.subdomains.iter().map(|s| s.dofs.clone()).collect(),
+            multiplicity: dec.subdomains.iter().map(|s| s.multiplicity.clone()).collect(),
             stats,
             cg: None,
             certify: true,
@@ -675,10 +819,11 @@ impl DdSolver {
             ));
             if solver.opts.preconditioner == Preconditioner::Dirichlet {
                 let t = Instant::now();
-                solver.op.subs.par_iter_mut().try_for_each(|st| -> Result<()> {
+                let r = solver.op.subs.par_iter_mut().try_for_each(|st| -> Result<()> {
                     st.interior = Some(InteriorProblem::new(&st.op, &st.iface_dofs)?);
                     Ok(())
-                })?;
+                });
+                solver.op.comm.agree(r)?;
                 solver.stats.factor_s += t.elapsed().as_secs_f64();
             }
             // After the interior problems: the deluxe blocks apply them.
@@ -786,26 +931,40 @@ impl DdSolver {
         self.op.coarse.as_mut()
     }
 
-    /// The factored operator of subdomain `s`.
+    /// The factored operator of the `s`-th subdomain held here (subdomain
+    /// `s` itself unless the set-up is spread over MPI ranks:
+    /// [`Self::owned`]).
     pub fn operator(&self, s: usize) -> &SubdomainOperator {
         &self.op.subs[s].op
     }
 
-    /// Mutable access to the operator of subdomain `s` (for solves in tests
-    /// and tools; the iteration does not depend on its scratch state).
+    /// Mutable access to the operator of the `s`-th subdomain held here
+    /// (for solves in tests and tools; the iteration does not depend on its
+    /// scratch state).
     pub fn operator_mut(&mut self, s: usize) -> &mut SubdomainOperator {
         &mut self.op.subs[s].op
     }
 
-    /// The factored subdomain operators, for a later set-up that reuses
-    /// them ([`Self::new_reusing`]).
+    /// The factored operators of the subdomains held here, for a later
+    /// set-up that reuses them ([`Self::new_reusing`]).
     pub fn into_operators(self) -> Vec<SubdomainOperator> {
         self.op.subs.into_iter().map(|s| s.op).collect()
     }
 
-    /// Number of subdomains.
+    /// Number of subdomains (on every process).
     pub fn n_subdomains(&self) -> usize {
-        self.op.subs.len()
+        self.dof_maps.len()
+    }
+
+    /// The subdomains whose operators this process holds: all of them,
+    /// or an MPI rank's block.
+    pub fn owned(&self) -> std::ops::Range<usize> {
+        self.op.comm.owned()
+    }
+
+    /// The set-up's communication seam (its traffic, under MPI).
+    pub fn seam(&self) -> &Seam {
+        &self.op.comm
     }
 
     /// Whether this solver runs a coarse step.
@@ -841,10 +1000,28 @@ impl DdSolver {
         ids: Option<&[usize]>,
         out: &mut [f64],
     ) {
-        for (sd, st) in dec.subdomains.iter().zip(&self.op.subs) {
+        let held = &dec.subdomains[self.owned()];
+        if self.owned().len() == dec.len() {
+            for (sd, st) in held.iter().zip(&self.op.subs) {
+                for &e in &sd.elements {
+                    let e = ids.map_or(e, |ids| ids[e]);
+                    out[e] = model.elongation_by(e, |d| sd.local(d).map_or(0.0, |l| st.v[l]));
+                }
+            }
+            return;
+        }
+        // Spread over processes: each element's value comes from the one
+        // holding its subdomain, placed in a vector of zeros (exact sum).
+        let mut all = vec![0.0; dec.partition.part_of.len()];
+        self.op.comm.assemble(&mut all, |s, o| {
+            let (sd, st) = (&held[s], &self.op.subs[s]);
             for &e in &sd.elements {
-                let e = ids.map_or(e, |ids| ids[e]);
-                out[e] = model.elongation_by(e, |d| sd.local(d).map_or(0.0, |l| st.v[l]));
+                o[e] = model.elongation_by(ids.map_or(e, |ids| ids[e]), |d| sd.local(d).map_or(0.0, |l| st.v[l]));
+            }
+        });
+        for sd in &dec.subdomains {
+            for &e in &sd.elements {
+                out[ids.map_or(e, |ids| ids[e])] = all[e];
             }
         }
     }
@@ -931,7 +1108,7 @@ impl DdSolver {
                 format!("has {} entries, expected {}", f_ext.len(), self.n_free),
             ));
         }
-        let subs_dofs = &self.dof_maps;
+        let subs_dofs = &self.dof_maps[self.op.comm.owned()];
         self.op
             .subs
             .par_iter_mut()
@@ -1007,11 +1184,12 @@ impl DdSolver {
 
     /// Norm of the assembled right-hand side (loads and prestrain).
     pub(crate) fn load_norm(&self) -> f64 {
-        self.op.load_norm(&self.dof_maps, self.n_free)
+        self.op.load_norm(&self.dof_maps[self.op.comm.owned()], self.n_free)
     }
 
     /// Global displacement (average of the subdomain copies) and slacks.
     pub(crate) fn assemble(&self) -> (Vec<f64>, Vec<f64>) {
-        self.op.assemble(&self.dof_maps, self.n_free, self.n_cables)
+        self.op
+            .assemble(&self.dof_maps[self.op.comm.owned()], self.n_free, self.n_cables)
     }
 }

@@ -8,7 +8,7 @@ use std::fmt;
 pub type Result<T> = std::result::Result<T, Error>;
 
 /// Everything that can go wrong, from reading a scene to the last iteration.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub enum Error {
     /// A scene field is invalid. `field` is the dotted path (`elements.ea`),
     /// `index` the 0-based entry when the problem is in one entry.

@@ -15,11 +15,12 @@ use std::time::{Duration, Instant};
 use clap::{Args, Parser, Subcommand, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
 
+use nsdd::comm::Placement;
 use nsdd::error::{Error, Result};
 use nsdd::generate;
 use nsdd::model::Model;
 use nsdd::scene::{InterfaceScaling, Method, Partitioner, Preconditioner, Scene, SearchDirection};
-use nsdd::solve::{solve_with_progress, SolveOptions};
+use nsdd::solve::{solve_in, SolveOptions};
 use nsdd::vtk;
 use report::{AccuracyOptions, Event, ScalingOptions};
 
@@ -334,8 +335,48 @@ fn gen_help() -> String {
     s
 }
 
+/// Under `mpirun` (an MPI launcher's environment) with the `mpi` feature:
+/// MPI started with `MPI_THREAD_FUNNELED` (only this thread calls MPI) and
+/// the placement over `MPI_COMM_WORLD`; otherwise every subdomain in this
+/// process. The universe finalises MPI when dropped, at the end of `main`.
+#[cfg(feature = "mpi")]
+fn start_placement() -> std::result::Result<(Placement, Option<mpi::environment::Universe>), String> {
+    let launched = ["OMPI_COMM_WORLD_SIZE", "PMI_SIZE", "PMIX_RANK", "MPI_LOCALNRANKS"]
+        .iter()
+        .any(|v| std::env::var_os(v).is_some());
+    if !launched {
+        return Ok((Placement::Process, None));
+    }
+    let (universe, level) = mpi::initialize_with_threading(mpi::Threading::Funneled)
+        .ok_or_else(|| "MPI was already initialised".to_string())?;
+    if level < mpi::Threading::Funneled {
+        return Err(format!("MPI offers only {level:?} threading; nsdd needs Funneled"));
+    }
+    Ok((Placement::Mpi(nsdd::comm::mpi::MpiComm::world()), Some(universe)))
+}
+
+#[cfg(not(feature = "mpi"))]
+fn start_placement() -> std::result::Result<(Placement, Option<()>), String> {
+    Ok((Placement::Process, None))
+}
+
+/// Whether this process prints (rank 0, or the only process).
+static ROOT: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(true);
+
+fn is_root() -> bool {
+    ROOT.load(std::sync::atomic::Ordering::Relaxed)
+}
+
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    let (placement, _universe) = match start_placement() {
+        Ok(p) => p,
+        Err(e) => {
+            eprintln!("error: {e}");
+            return ExitCode::from(1);
+        }
+    };
+    ROOT.store(placement.is_root(), std::sync::atomic::Ordering::Relaxed);
     if let Some(n) = cli.threads {
         if let Err(e) = rayon::ThreadPoolBuilder::new().num_threads(n).build_global() {
             eprintln!("error: cannot start {n} threads: {e}");
@@ -343,7 +384,7 @@ fn main() -> ExitCode {
         }
     }
     let outcome = match cli.command {
-        Command::Solve(a) => cmd_solve(a),
+        Command::Solve(a) => cmd_solve(a, placement),
         Command::Gen(a) => cmd_gen(a),
         Command::Partition(a) => cmd_partition(a),
         Command::Accuracy(a) => cmd_accuracy(a),
@@ -353,7 +394,9 @@ fn main() -> ExitCode {
     match outcome {
         Ok(code) => ExitCode::from(code as u8),
         Err(e) => {
-            eprintln!("error: {e}");
+            if is_root() {
+                eprintln!("error: {e}");
+            }
             ExitCode::from(report::exit_code(&e) as u8)
         }
     }
@@ -479,7 +522,9 @@ fn create_dir(dir: &Path) -> Result<()> {
     std::fs::create_dir_all(dir).map_err(|e| Error::Io(format!("{}: {e}", dir.display())))
 }
 
-fn cmd_solve(a: SolveArgs) -> Result<i32> {
+/// `nsdd solve`; under MPI every rank solves its block of subdomains and
+/// rank 0 alone shows progress and writes the result.
+fn cmd_solve(a: SolveArgs, placement: Placement) -> Result<i32> {
     let mut scene = Scene::load(&a.scene)?;
     if let Some(p) = a.partitioner {
         scene.solver.partitioner = p;
@@ -514,7 +559,8 @@ fn cmd_solve(a: SolveArgs) -> Result<i32> {
         opts.interface_scaling = s;
     }
 
-    let mut bar = if opts.method == Method::Direct {
+    let root = placement.is_root();
+    let mut bar = if opts.method == Method::Direct || !root {
         None
     } else {
         SolveBar::new(opts.tolerance)
@@ -522,9 +568,9 @@ fn cmd_solve(a: SolveArgs) -> Result<i32> {
     let result = match bar.as_mut() {
         Some(b) => {
             let mut cb = |it: usize, ind: f64| b.update(it, ind);
-            solve_with_progress(&scene, &opts, Some(&mut cb))
+            solve_in(&scene, &opts, Some(&mut cb), placement)
         }
-        None => solve_with_progress(&scene, &opts, None),
+        None => solve_in(&scene, &opts, None, placement),
     };
     if let Some(b) = bar {
         b.bar.finish_and_clear();
@@ -534,6 +580,13 @@ fn cmd_solve(a: SolveArgs) -> Result<i32> {
     // result carried the diverged state.
     if let Some(e) = result.divergence() {
         return Err(e);
+    }
+    if !root {
+        return Ok(if result.converged {
+            0
+        } else {
+            report::EXIT_NOT_CONVERGED
+        });
     }
 
     let mut wrote = Vec::new();

@@ -38,6 +38,7 @@
 //! factors of unchanged subdomains, and low-rank updates instead of
 //! refactoring.
 
+use crate::comm::Placement;
 use crate::dd::{DdOptions, DdSolver};
 use crate::decomposition::Decomposition;
 use crate::direct::Equilibrium;
@@ -159,6 +160,8 @@ pub struct NonsmoothCg {
 /// last `solve` began.
 #[derive(Default)]
 struct Pool {
+    /// Where the subdomains of every set-up live.
+    placement: Placement,
     ops: HashMap<OpKey, SubdomainOperator>,
     factored: usize,
     reused: usize,
@@ -175,12 +178,13 @@ impl Pool {
         original: Option<&[usize]>,
         opts: &DdOptions,
     ) -> Result<(DdSolver, Vec<OpKey>)> {
-        let keys = op_keys(lin, dec, original);
+        // Keys of the subdomains held here (all, or an MPI rank's block).
+        let keys = op_keys(lin, dec, original, self.placement.owned(dec.len()));
         let reused: Vec<Option<SubdomainOperator>> = keys.iter().map(|k| self.ops.remove(k)).collect();
         let hits = reused.iter().filter(|o| o.is_some()).count();
         self.reused += hits;
         self.factored += keys.len() - hits;
-        let dd = DdSolver::new_reusing(lin, dec, opts.clone(), reused)?;
+        let dd = DdSolver::new_reusing(lin, dec, opts.clone(), reused, self.placement.clone())?;
         Ok((dd, keys))
     }
 }
@@ -190,8 +194,8 @@ impl Pool {
 /// Geometry is fixed, so equal keys mean equal `K_E` and layout.
 type OpKey = (Vec<(usize, u64)>, Vec<usize>);
 
-fn op_keys(lin: &Model, dec: &Decomposition, original: Option<&[usize]>) -> Vec<OpKey> {
-    dec.subdomains
+fn op_keys(lin: &Model, dec: &Decomposition, original: Option<&[usize]>, held: std::ops::Range<usize>) -> Vec<OpKey> {
+    dec.subdomains[held]
         .iter()
         .map(|sd| {
             let els = sd
@@ -212,7 +216,7 @@ struct Step {
     /// Decomposition of the structure without its slack cables (`None`:
     /// the solver's own, for a softened step).
     dec: Option<Decomposition>,
-    /// Key of each subdomain operator of `dd`.
+    /// Key of each subdomain operator of `dd` (the subdomains held here).
     keys: Vec<OpKey>,
     /// Element of the full model behind each element of `dec`'s structure
     /// (`None`: the same numbering).
@@ -324,6 +328,17 @@ fn reduced_problem(
 impl NonsmoothCg {
     /// Keeps the decomposition; nothing is factored before the first solve.
     pub fn new(model: &Model, dec: Decomposition, opts: NonsmoothOptions) -> Result<NonsmoothCg> {
+        Self::new_in(model, dec, opts, Placement::Process)
+    }
+
+    /// [`Self::new`] with the subdomains of every set-up placed as
+    /// `placement` says (under MPI, every rank calls it).
+    pub fn new_in(
+        model: &Model,
+        dec: Decomposition,
+        opts: NonsmoothOptions,
+        placement: Placement,
+    ) -> Result<NonsmoothCg> {
         if !(opts.tolerance > 0.0) {
             return Err(Error::input("solver.tolerance", None, "must be positive"));
         }
@@ -339,7 +354,10 @@ impl NonsmoothCg {
             opts,
             current: None,
             settled: None,
-            pool: Pool::default(),
+            pool: Pool {
+                placement,
+                ..Pool::default()
+            },
             unrepaired_first: false,
         })
     }

@@ -52,15 +52,18 @@ fn dot(x: &[f64], y: &[f64]) -> f64 {
     x.iter().zip(y).map(|(a, b)| a * b).sum::<f64>()
 }
 
-impl InterfaceOperator<Threads> {
-    /// The operator of set-up subdomains and interfaces, with the coarse
-    /// problem when there is a coarse step; all in this process.
-    pub(crate) fn new(subs: Vec<SubState>, ifaces: Vec<IfaceState>, coarse: Option<CoarseProblem>) -> Self {
-        let comm = Threads::new(subs.len(), ifaces.iter().map(|it| (it.lo, it.hi)).collect());
-        let entry_inv_mult = ifaces
-            .iter()
-            .map(|it| it.lo_idx.iter().map(|&a| subs[it.lo].inv_mult[a as usize]).collect())
-            .collect();
+impl<C: Communicator> InterfaceOperator<C> {
+    /// The operator of set-up subdomains (those `comm` holds here) and
+    /// interfaces (all of them), with the coarse problem when there is a
+    /// coarse step; `entry_inv_mult[i]` is `1 / multiplicity` of each entry
+    /// of interface `i`.
+    pub(crate) fn with_seam(
+        subs: Vec<SubState>,
+        ifaces: Vec<IfaceState>,
+        coarse: Option<CoarseProblem>,
+        comm: C,
+        entry_inv_mult: Vec<Vec<f64>>,
+    ) -> Self {
         InterfaceOperator {
             subs,
             ifaces,
@@ -69,9 +72,7 @@ impl InterfaceOperator<Threads> {
             entry_inv_mult,
         }
     }
-}
 
-impl<C: Communicator> InterfaceOperator<C> {
     /// Entries of each interface.
     pub(crate) fn interface_sizes(&self) -> impl Iterator<Item = usize> + Clone + '_ {
         self.ifaces.iter().map(|it| it.lo_idx.len())
@@ -483,7 +484,7 @@ mod tests {
     use crate::solve::decompose;
 
     struct Ghosts {
-        inner: Threads,
+        inner: crate::comm::Seam,
         ends: Vec<(usize, usize)>,
         iface_dofs: Vec<Vec<u32>>,
     }
@@ -544,6 +545,22 @@ mod tests {
 
         fn assemble(&self, out: &mut [f64], add: impl Fn(usize, &mut [f64])) {
             self.inner.assemble(out, add);
+        }
+
+        fn owned(&self) -> std::ops::Range<usize> {
+            self.inner.owned()
+        }
+
+        fn exchange(&self, payload: impl Fn(usize, bool) -> Vec<f64> + Sync) -> Vec<[Vec<f64>; 2]> {
+            self.inner.exchange(payload)
+        }
+
+        fn gather(&self, local: &[f64]) -> Vec<f64> {
+            self.inner.gather(local)
+        }
+
+        fn agree<T>(&self, r: crate::error::Result<T>) -> crate::error::Result<T> {
+            self.inner.agree(r)
         }
     }
 

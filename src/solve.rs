@@ -28,6 +28,7 @@
 //! assert!((result.tensions[0] - 2.0).abs() < 1e-12);
 //! ```
 
+use crate::comm::Placement;
 use crate::dd::{DdOptions, DdSolver};
 use crate::decomposition::Decomposition;
 use crate::direct::DirectSolver;
@@ -136,12 +137,19 @@ fn subdomain_notes(model: &Model, scene: &Scene, opts: &SolveOptions, dec: &Deco
 
 /// Sets up the solver for `model` (factorizations, coarse problem).
 pub fn prepare(model: &Model, scene: &Scene, opts: &SolveOptions) -> Result<Prepared> {
+    prepare_in(model, scene, opts, Placement::Process)
+}
+
+/// [`prepare`] with the subdomains placed as `placement` says: under MPI,
+/// every rank calls it and sets up its block of subdomains (the direct
+/// method runs whole on every rank).
+pub fn prepare_in(model: &Model, scene: &Scene, opts: &SolveOptions, placement: Placement) -> Result<Prepared> {
     Ok(match opts.method {
         Method::Direct => Prepared::Direct(Box::new(DirectSolver::new(model)?)),
         Method::Cg if !model.cables.is_empty() => {
             opts.validate()?;
             let dec = decompose_with(model, scene, opts.subdomains, opts.partitioner)?;
-            Prepared::NonsmoothCg(Box::new(NonsmoothCg::new(
+            Prepared::NonsmoothCg(Box::new(NonsmoothCg::new_in(
                 model,
                 dec,
                 NonsmoothOptions {
@@ -150,11 +158,12 @@ pub fn prepare(model: &Model, scene: &Scene, opts: &SolveOptions) -> Result<Prep
                     preconditioner: opts.preconditioner,
                     interface_scaling: opts.interface_scaling,
                 },
+                placement,
             )?))
         }
         Method::Monolevel | Method::Multilevel | Method::Cg => {
             let dec = decompose_with(model, scene, opts.subdomains, opts.partitioner)?;
-            let dd = DdSolver::new(model, &dec, DdOptions::from_settings(opts)?)?;
+            let dd = DdSolver::new_in(model, &dec, DdOptions::from_settings(opts)?, placement)?;
             Prepared::Dd(Box::new(dd), dec)
         }
     })
@@ -300,11 +309,23 @@ pub fn solve(scene: &Scene, opts: &SolveOptions) -> Result<SolveResult> {
 }
 
 /// [`solve`] with a progress callback.
-pub fn solve_with_progress(scene: &Scene, opts: &SolveOptions, mut progress: Progress<'_>) -> Result<SolveResult> {
+pub fn solve_with_progress(scene: &Scene, opts: &SolveOptions, progress: Progress<'_>) -> Result<SolveResult> {
+    solve_in(scene, opts, progress, Placement::Process)
+}
+
+/// [`solve_with_progress`] with the subdomains placed as `placement` says.
+/// Under MPI every rank calls it with the same scene and options, and
+/// every rank returns the same result (or the same error).
+pub fn solve_in(
+    scene: &Scene,
+    opts: &SolveOptions,
+    mut progress: Progress<'_>,
+    placement: Placement,
+) -> Result<SolveResult> {
     let t_setup = Instant::now();
     opts.validate()?;
     let model = Model::from_scene(scene)?;
-    let mut prepared = prepare(&model, scene, opts)?;
+    let mut prepared = prepare_in(&model, scene, opts, placement)?;
     let setup = t_setup.elapsed().as_secs_f64();
     let t_solve = Instant::now();
 

@@ -4,6 +4,7 @@
 //! in the solver's state, so the operator is applied to them directly.
 
 use crate::cg_stopping::{self, CgStopping};
+use crate::comm::Communicator;
 use crate::dd::DdSolver;
 use crate::error::Result;
 use crate::method::stopping::{finish, stalled};
@@ -365,19 +366,47 @@ impl DdSolver {
                 hi_idx: &it.hi_idx,
             })
             .collect();
-        let mult: Vec<Vec<u32>> = self
-            .op
-            .subs
-            .iter()
-            .map(|s| s.inv_mult.iter().map(|&w| (1.0 / w).round() as u32).collect())
-            .collect();
+        let mult = &self.multiplicity;
+        let held = self.op.comm.owned();
+        let first = held.start;
         let diag: Vec<Vec<f64>> = match kind {
             InterfaceScaling::Stiffness | InterfaceScaling::Contrast | InterfaceScaling::Deluxe => {
-                self.op.subs.iter().map(|s| s.op.diagonal()).collect()
+                let own: Vec<Vec<f64>> = self.op.subs.iter().map(|s| s.op.diagonal()).collect();
+                if held.len() == self.dof_maps.len() {
+                    own
+                } else {
+                    // Spread over processes: the neighbours' diagonals on
+                    // the shared entries are all the weights read of them
+                    // (every subdomain sharing a dof with one held here
+                    // has an interface with it); the rest stays unknown.
+                    let ifaces = &self.op.ifaces;
+                    let sides = self.op.comm.exchange(|i, is_lo| {
+                        let it = &ifaces[i];
+                        let (s, idx) = if is_lo {
+                            (it.lo, &it.lo_idx)
+                        } else {
+                            (it.hi, &it.hi_idx)
+                        };
+                        idx.iter().map(|&l| own[s - first][l as usize]).collect()
+                    });
+                    let mut full: Vec<Vec<f64>> = self.dof_maps.iter().map(|d| vec![f64::NAN; d.len()]).collect();
+                    for (it, [lo, hi]) in ifaces.iter().zip(&sides) {
+                        for (j, &v) in lo.iter().enumerate() {
+                            full[it.lo][it.lo_idx[j] as usize] = v;
+                        }
+                        for (j, &v) in hi.iter().enumerate() {
+                            full[it.hi][it.hi_idx[j] as usize] = v;
+                        }
+                    }
+                    for (k, d) in own.into_iter().enumerate() {
+                        full[first + k] = d;
+                    }
+                    full
+                }
             }
             _ => Vec::new(),
         };
-        ws.w = scaling::interface_weights(&entries, &self.dof_maps, &mult, &diag, kind);
+        ws.w = scaling::interface_weights(&entries, &self.dof_maps, mult, &diag, kind);
         // Face entries: dof shared by the two sides only.
         let faces: Vec<Vec<u32>> = self
             .op
@@ -437,6 +466,38 @@ impl DdSolver {
         for (s, b) in self.op.subs.iter().zip(&blocks) {
             for (&(i, is_lo), m) in s.ifaces.iter().zip(b) {
                 side[i][usize::from(!is_lo)] = Some(m);
+            }
+        }
+        // The other side's block where it lives on another process.
+        let remote: Vec<[Mat<f64>; 2]> = if held.len() == self.dof_maps.len() {
+            Vec::new()
+        } else {
+            let side = &side;
+            self.op
+                .comm
+                .exchange(|i, is_lo| {
+                    side[i][usize::from(!is_lo)]
+                        .map(|m| (0..m.ncols()).flat_map(|j| m.col(j).iter().copied()).collect())
+                        .unwrap_or_default()
+                })
+                .into_iter()
+                .map(|ps| {
+                    ps.map(|p| {
+                        let n = (p.len() as f64).sqrt().round() as usize;
+                        if n * n == p.len() {
+                            Mat::from_fn(n, n, |a, b| p[b * n + a])
+                        } else {
+                            Mat::zeros(0, 0)
+                        }
+                    })
+                })
+                .collect()
+        };
+        for (i, [lo, hi]) in remote.iter().enumerate() {
+            for (k, m) in [(0, lo), (1, hi)] {
+                if side[i][k].is_none() && m.nrows() > 0 {
+                    side[i][k] = Some(m);
+                }
             }
         }
         ws.deluxe = faces

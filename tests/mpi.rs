@@ -1,0 +1,277 @@
+//! The MPI backend (`--features mpi`): `mpirun -np 1/2/3 nsdd solve` must
+//! give the threaded solver's result (in this process, through the same
+//! `solve` API) for every DD method, on linear and nonsmooth grids, 3D
+//! towers with singular subdomains, load paths and load cases; and an
+//! error on one rank must end every rank with the same status, at once.
+//!
+//! Run with `cargo test --release --features mpi --test mpi` on a machine
+//! with `mpirun` (OpenMPI: `openmpi-bin libopenmpi-dev`). `NSDD_MPIRUN`
+//! overrides the launcher (default `mpirun --allow-run-as-root
+//! --oversubscribe`: CI runs as root on two cores).
+#![cfg(feature = "mpi")]
+
+use nsdd::generate::{grid, tensegrity, GridParams, TensegrityParams};
+use nsdd::result::SolveResult;
+use nsdd::scene::{LoadCase, LoadPath, Method, Scene};
+use nsdd::solve::{solve, SolveOptions};
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+use std::time::{Duration, Instant};
+
+fn dir() -> PathBuf {
+    let d = std::env::temp_dir().join(format!("nsdd-mpi-test-{}", std::process::id()));
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+fn write_scene(scene: &Scene, name: &str) -> PathBuf {
+    let p = dir().join(format!("{name}.toml"));
+    std::fs::write(&p, scene.to_toml_string().unwrap()).unwrap();
+    p
+}
+
+fn mpirun(np: usize, args: &[&str]) -> Output {
+    let launcher = std::env::var("NSDD_MPIRUN").unwrap_or_else(|_| "mpirun --allow-run-as-root --oversubscribe".into());
+    let mut parts = launcher.split_whitespace();
+    let mut cmd = Command::new(parts.next().unwrap());
+    cmd.args(parts)
+        .args(["-np", &np.to_string(), env!("CARGO_BIN_EXE_nsdd")])
+        .args(args)
+        // One rayon thread per rank: ranks share the machine's cores.
+        .env("RAYON_NUM_THREADS", "1");
+    cmd.output().expect("mpirun runs (is OpenMPI installed?)")
+}
+
+fn opts(scene: &Scene, method: Method, n: usize) -> SolveOptions {
+    let mut o = SolveOptions::from_scene(scene);
+    o.method = method;
+    o.subdomains = n;
+    o.tolerance = 1e-8;
+    o.max_iterations = 20_000;
+    o
+}
+
+fn rel(a: &[[f64; 3]], b: &[[f64; 3]]) -> f64 {
+    let scale = a.iter().flatten().fold(0.0f64, |m, x| m.max(x.abs())).max(1e-300);
+    a.iter()
+        .flatten()
+        .zip(b.iter().flatten())
+        .fold(0.0f64, |m, (x, y)| m.max((x - y).abs()))
+        / scale
+}
+
+fn rel_t(a: &[f64], b: &[f64]) -> f64 {
+    let scale = a.iter().fold(0.0f64, |m, x| m.max(x.abs())).max(1e-300);
+    a.iter().zip(b).fold(0.0f64, |m, (x, y)| m.max((x - y).abs())) / scale
+}
+
+/// The threaded result and `mpirun -np np`'s agree to 1e-12: displacements,
+/// tensions, slack sets, iteration counts, for the top level, every load
+/// path step and every load case.
+fn agree(scene_path: &Path, threaded: &SolveResult, method: Method, n: usize, np: usize) {
+    let out = dir().join(format!(
+        "{}-{}-{n}-{np}.json",
+        scene_path.file_stem().unwrap().to_str().unwrap(),
+        method.name()
+    ));
+    let o = mpirun(
+        np,
+        &[
+            "solve",
+            scene_path.to_str().unwrap(),
+            "--method",
+            method.name(),
+            "--subdomains",
+            &n.to_string(),
+            "--tolerance",
+            "1e-8",
+            "--max-iterations",
+            "20000",
+            "--out",
+            out.to_str().unwrap(),
+        ],
+    );
+    let what = format!("{} {} n={n} np={np}", scene_path.display(), method.name());
+    assert!(
+        o.status.success(),
+        "{what}: {}\n{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    );
+    // Rank 0 alone prints the summary.
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert_eq!(stdout.matches("converged   ").count(), 1, "{what}: {stdout}");
+    let r: SolveResult = serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+    assert!(r.converged, "{what}");
+    assert_eq!(r.iterations, threaded.iterations, "{what}");
+    assert_eq!(r.subdomains, n, "{what}");
+    let tops = std::iter::once((&r.displacements, &r.tensions, &r.slack)).chain(
+        r.steps
+            .iter()
+            .chain(&r.load_cases)
+            .map(|c| (&c.displacements, &c.tensions, &c.slack)),
+    );
+    let refs = std::iter::once((&threaded.displacements, &threaded.tensions, &threaded.slack)).chain(
+        threaded
+            .steps
+            .iter()
+            .chain(&threaded.load_cases)
+            .map(|c| (&c.displacements, &c.tensions, &c.slack)),
+    );
+    assert_eq!(r.steps.len(), threaded.steps.len(), "{what}");
+    assert_eq!(r.load_cases.len(), threaded.load_cases.len(), "{what}");
+    for ((u, t, s), (u0, t0, s0)) in tops.zip(refs) {
+        let (du, dt) = (rel(u0, u), rel_t(t0, t));
+        assert!(
+            du < 1e-12 && dt < 1e-12,
+            "{what}: displacements {du:.1e}, tensions {dt:.1e}"
+        );
+        assert_eq!(s, s0, "{what}: slack sets");
+    }
+}
+
+fn check_all(scene: &Scene, name: &str, cases: &[(Method, usize)], ranks: &[usize]) {
+    let path = write_scene(scene, name);
+    for &(method, n) in cases {
+        // One thread, as each rank runs (faer's dense kernels split work by
+        // thread count, which moves round-off).
+        let threaded = rayon::ThreadPoolBuilder::new()
+            .num_threads(1)
+            .build()
+            .unwrap()
+            .install(|| solve(scene, &opts(scene, method, n)).unwrap());
+        assert!(
+            threaded.converged,
+            "{name} {}: {:?} after {} iterations",
+            method.name(),
+            threaded.status,
+            threaded.iterations
+        );
+        for &np in ranks {
+            agree(&path, &threaded, method, n, np);
+        }
+    }
+}
+
+#[test]
+fn linear_grid_every_dd_method_on_1_2_3_ranks() {
+    let scene = grid(&GridParams {
+        nx: 16,
+        ny: 16,
+        unilateral: false,
+        t0: 0.0,
+        ..Default::default()
+    });
+    check_all(
+        &scene,
+        "grid-linear",
+        &[(Method::Cg, 6), (Method::Multilevel, 6), (Method::Monolevel, 6)],
+        &[1, 2, 3],
+    );
+}
+
+#[test]
+fn nonsmooth_grid_cg_and_multilevel_on_2_3_ranks() {
+    let scene = grid(&GridParams {
+        nx: 10,
+        ny: 10,
+        ..Default::default()
+    });
+    let direct = solve(&scene, &opts(&scene, Method::Direct, 1)).unwrap();
+    assert!(direct.slack.iter().any(|&s| s), "the scene has slack cables");
+    check_all(
+        &scene,
+        "grid-nonsmooth",
+        &[(Method::Cg, 6), (Method::Multilevel, 4)],
+        &[2, 3],
+    );
+}
+
+#[test]
+fn tower_with_floating_subdomains_on_2_3_ranks() {
+    let scene = Scene::load(Path::new(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/scenes/tower-2x2x6.toml"
+    )))
+    .unwrap();
+    check_all(&scene, "tower", &[(Method::Cg, 5)], &[2, 3]);
+}
+
+#[test]
+fn load_path_and_load_cases_on_2_ranks() {
+    let mut scene = grid(&GridParams {
+        nx: 8,
+        ny: 8,
+        t0: 0.1,
+        load: 2.0,
+        ..Default::default()
+    });
+    scene.load_path = Some(LoadPath {
+        steps: 3,
+        final_factor: 1.0,
+    });
+    scene.load_cases.push(LoadCase {
+        name: "corner".into(),
+        node: vec![10, 20],
+        fx: vec![0.5, 0.0],
+        fy: vec![0.0, -0.3],
+        fz: vec![-2.0, 1.0],
+    });
+    check_all(&scene, "grid-path", &[(Method::Cg, 4), (Method::Multilevel, 4)], &[2]);
+}
+
+#[test]
+fn more_ranks_than_subdomains() {
+    let scene = grid(&GridParams {
+        nx: 6,
+        ny: 6,
+        unilateral: false,
+        t0: 0.0,
+        ..Default::default()
+    });
+    check_all(&scene, "grid-small", &[(Method::Cg, 2)], &[3]);
+}
+
+#[test]
+fn an_error_on_one_rank_ends_every_rank_alike() {
+    // Compressed struts make subdomain 1 of 4 indefinite (its geometric
+    // stiffness); with 3 ranks it belongs to rank 1 alone.
+    let scene = tensegrity(&TensegrityParams {
+        nx: 3,
+        ny: 3,
+        unilateral: true,
+        ..Default::default()
+    });
+    let expected = match solve(&scene, &opts(&scene, Method::Multilevel, 4)) {
+        Err(e) => e,
+        Ok(_) => panic!("the threaded set-up should fail"),
+    };
+    assert!(
+        matches!(expected, nsdd::error::Error::IndefiniteSubdomain { subdomain: 1, .. }),
+        "{expected}"
+    );
+    let path = write_scene(&scene, "tensegrity");
+    let t = Instant::now();
+    let o = mpirun(
+        3,
+        &[
+            "solve",
+            path.to_str().unwrap(),
+            "--method",
+            "multilevel",
+            "--subdomains",
+            "4",
+        ],
+    );
+    assert!(t.elapsed() < Duration::from_secs(60), "no hang");
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    // Every rank exits with the error's status (mpirun reports the first
+    // non-zero one); rank 0 alone prints the message, the threaded one.
+    assert_eq!(
+        o.status.code(),
+        Some(3), // report::exit_code of IndefiniteSubdomain (docs: CLI exit codes)
+        "{stderr}"
+    );
+    assert_eq!(stderr.matches("error: ").count(), 1, "{stderr}");
+    assert!(stderr.contains(&format!("error: {expected}")), "{stderr}");
+}
