@@ -714,6 +714,44 @@ enum NsddStatus nsdd_result_write_json(const struct NsddResult *result, const ch
 enum NsddStatus nsdd_alg_new(size_t n_subdomains, size_t n_global_dofs, struct NsddAlgebraic **out);
 
 /**
+ * Like `nsdd_alg_new`, for a problem spread over the ranks of an MPI
+ * communicator, given as its Fortran handle `comm` (`MPI_Comm_c2f(comm)`,
+ * so this header does not depend on one MPI's `MPI_Comm` type); nsdd works
+ * on its own duplicate of it. Every rank calls it with the same sizes;
+ * rank `r` of `p` owns subdomains `floor(r n / p)` to `floor((r+1) n / p)
+ * - 1` (`nsdd_alg_owned`) and sets only those (matrix, kernel, cables),
+ * with the dof points of at least their dofs. `nsdd_alg_setup` and the
+ * solves are then collective: every rank calls them, and every rank gets
+ * the whole displacement and the same status (an error on one rank, such
+ * as an indefinite subdomain, is returned on all of them). `nsdd_alg_solve`
+ * takes the right-hand sides of this rank's subdomains only. Cables are
+ * numbered rank by rank in the slacks (rank r's after those of the ranks
+ * below it). MPI must be initialised with at least MPI_THREAD_FUNNELED and
+ * nsdd called from the thread that initialised it. A library built
+ * without the `mpi` feature returns METHOD_NOT_APPLICABLE.
+ *
+ * # Safety
+ * `out` must point to writable storage for one pointer; `comm` must be
+ * the Fortran handle of a live intra-communicator.
+ */
+enum NsddStatus nsdd_alg_new_mpi(size_t n_subdomains,
+                                 size_t n_global_dofs,
+                                 int comm,
+                                 struct NsddAlgebraic **out);
+
+/**
+ * The subdomains this process sets: `*out_first` and `*out_count` (all
+ * of them for `nsdd_alg_new`, the rank's block for `nsdd_alg_new_mpi`).
+ *
+ * # Safety
+ * `alg` must be a live algebraic handle; the outputs must point to
+ * writable `size_t`s.
+ */
+enum NsddStatus nsdd_alg_owned(const struct NsddAlgebraic *alg,
+                               size_t *out_first,
+                               size_t *out_count);
+
+/**
  * Releases an algebraic problem (NULL is ignored).
  *
  * # Safety
@@ -806,7 +844,9 @@ enum NsddStatus nsdd_alg_add_cable(struct NsddAlgebraic *alg,
                                    size_t *out_index);
 
 /**
- * Number of cables added so far into `*out`.
+ * Number of cables into `*out`: after `nsdd_alg_setup`, the entries of
+ * the slacks `out_lambda` (under MPI, every rank's cables); before it, the
+ * cables this process added so far.
  *
  * # Safety
  * `alg` must be a live algebraic handle; `out` must point to a writable `size_t`.
@@ -852,7 +892,8 @@ enum NsddStatus nsdd_alg_search_direction(const struct NsddAlgebraic *alg, doubl
  *
  * # Safety
  * `alg` must be a live algebraic handle; `rhs` must point to `n_subdomains`
- * pointers, each to `n_local(s)` doubles; outputs as described above.
+ * pointers (this rank's `count` of `nsdd_alg_owned` under MPI), each to
+ * `n_local(s)` doubles; outputs as described above.
  */
 enum NsddStatus nsdd_alg_solve(struct NsddAlgebraic *alg,
                                const double *const *rhs,

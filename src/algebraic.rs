@@ -40,6 +40,7 @@
 //! # Ok::<(), nsdd::Error>(())
 //! ```
 
+use crate::comm::Placement;
 use crate::dd::{CableColumn, DdOptions, DdProblem, DdSolver, DdStats, SubdomainLoad, NO_DOF};
 use crate::decomposition::Decomposition;
 use crate::error::{Error, Result};
@@ -98,6 +99,9 @@ pub struct AlgebraicProblem {
     subdomains: Vec<Option<Subdomain>>,
     dof_points: Option<Vec<([f64; 3], usize)>>,
     cables: Vec<Cable>,
+    /// Where the subdomains live: under MPI each rank sets (and factors)
+    /// only its block ([`Self::owned`]).
+    placement: Placement,
 }
 
 impl AlgebraicProblem {
@@ -121,7 +125,27 @@ impl AlgebraicProblem {
             subdomains: vec![None; n_subdomains],
             dof_points: None,
             cables: Vec::new(),
+            placement: Placement::Process,
         })
+    }
+
+    /// [`Self::new`] with the subdomains spread as `placement` says. Under
+    /// MPI every rank creates the problem with the same sizes, sets only
+    /// the subdomains of its block ([`Self::owned`]) and their kernels and
+    /// cables, gives the dof points of (at least) its subdomains' dofs, and
+    /// calls [`Self::build`] with the others; the local-to-global maps are
+    /// gathered there, so every rank knows the interfaces. Cables are
+    /// numbered rank by rank: in the slacks of a solve, rank `r`'s cables
+    /// (in the order it added them) follow those of the ranks below it.
+    pub fn new_in(n_subdomains: usize, n_global_dofs: usize, placement: Placement) -> Result<AlgebraicProblem> {
+        let mut p = Self::new(n_subdomains, n_global_dofs)?;
+        p.placement = placement;
+        Ok(p)
+    }
+
+    /// The subdomains this process sets: all of them, or its MPI rank's block.
+    pub fn owned(&self) -> std::ops::Range<usize> {
+        self.placement.owned(self.subdomains.len())
     }
 
     pub fn n_subdomains(&self) -> usize {
@@ -150,6 +174,19 @@ impl AlgebraicProblem {
                 format!(
                     "subdomain {s} out of range (the problem has {} subdomains)",
                     self.subdomains.len()
+                ),
+            ));
+        }
+        let held = self.owned();
+        if !held.contains(&s) {
+            return Err(bad(
+                "s",
+                format!(
+                    "subdomain {s} belongs to rank {} (rank {} sets subdomains {}..{})",
+                    self.placement.owner(s, self.subdomains.len()),
+                    self.placement.rank(),
+                    held.start,
+                    held.end
                 ),
             ));
         }
@@ -401,22 +438,16 @@ impl AlgebraicProblem {
     /// method needs them, every cable's dofs inside its (possibly reset)
     /// subdomain.
     pub fn check_complete(&self, coarse: bool) -> Result<()> {
-        for (s, sub) in self.subdomains.iter().enumerate() {
-            if sub.is_none() {
+        for s in self.owned() {
+            if self.subdomains[s].is_none() {
                 return Err(bad(format!("subdomain {s}"), format!("subdomain {s} has not been set")));
             }
         }
-        let mut covered = vec![false; self.n_global];
-        for sub in self.subdomains.iter().flatten() {
-            for &g in &sub.local_to_global {
-                covered[g] = true;
-            }
-        }
-        if let Some(g) = covered.iter().position(|c| !c) {
-            return Err(bad(
-                "local_to_global",
-                format!("global dof {g} belongs to no subdomain"),
-            ));
+        if self.owned().len() == self.subdomains.len() {
+            check_covered(
+                self.subdomains.iter().flatten().map(|s| &s.local_to_global[..]),
+                self.n_global,
+            )?;
         }
         if coarse && self.dof_points.is_none() {
             return Err(bad(
@@ -450,29 +481,57 @@ impl AlgebraicProblem {
         // The one mapping of a method to its configuration (and the one
         // validation of the settings).
         let options = DdOptions::from_settings(settings)?;
-        self.check_complete(options.coarse)?;
+        let placement = &self.placement;
+        placement.agree(self.check_complete(options.coarse))?;
         let ns = self.subdomains.len();
-        let subs: Vec<&Subdomain> = self.subdomains.iter().flatten().collect();
+        let held = self.owned();
+        let first = held.start;
+        let subs: Vec<&Subdomain> = self.subdomains[held.clone()].iter().flatten().collect();
         let dof_points = match &self.dof_points {
             Some(p) => p.clone(),
             None => vec![([0.0; 3], 0); self.n_global],
         };
+        // Every subdomain's global dofs, in subdomain order: here, or
+        // gathered from the ranks (set-up only).
+        let maps: Vec<Vec<usize>> = if held.len() == ns {
+            subs.iter().map(|s| s.local_to_global.clone()).collect()
+        } else {
+            let mine: Vec<f64> = subs
+                .iter()
+                .flat_map(|s| std::iter::once(s.n_local as f64).chain(s.local_to_global.iter().map(|&g| g as f64)))
+                .collect();
+            let all = placement.gather(&mine);
+            let mut maps = Vec::with_capacity(ns);
+            let mut k = 0;
+            while k < all.len() {
+                let n = all[k] as usize;
+                maps.push(all[k + 1..k + 1 + n].iter().map(|&g| g as usize).collect());
+                k += 1 + n;
+            }
+            // The same maps on every rank: the same verdict.
+            check_covered(maps.iter().map(|m: &Vec<usize>| &m[..]), self.n_global)?;
+            maps
+        };
+        // Cables are numbered rank by rank.
+        let counts = placement.gather(&[self.cables.len() as f64]);
+        let cable_base: usize = counts[..placement.rank()].iter().map(|&c| c as usize).sum();
+        let n_cables: usize = counts.iter().map(|&c| c as usize).sum();
         // The decomposition takes each subdomain's dofs in increasing global
         // order and lays them out its own way (interior first, then interface
         // by interface): its local dof p is the caller's local dof order[p];
         // inverse[caller] = p.
-        let sorted: Vec<Vec<usize>> = subs
+        let sorted: Vec<Vec<usize>> = maps
             .iter()
-            .map(|sub| {
-                let mut o: Vec<usize> = (0..sub.n_local).collect();
-                o.sort_unstable_by_key(|&i| sub.local_to_global[i]);
+            .map(|map| {
+                let mut o: Vec<usize> = (0..map.len()).collect();
+                o.sort_unstable_by_key(|&i| map[i]);
                 o
             })
             .collect();
-        let dof_sets: Vec<Vec<usize>> = subs
+        let dof_sets: Vec<Vec<usize>> = maps
             .iter()
             .zip(&sorted)
-            .map(|(sub, o)| o.iter().map(|&i| sub.local_to_global[i]).collect())
+            .map(|(map, o)| o.iter().map(|&i| map[i]).collect())
             .collect();
         let partition = Partition {
             part_of: vec![],
@@ -505,7 +564,8 @@ impl AlgebraicProblem {
         let ops: Vec<Result<SubdomainOperator>> = subs
             .par_iter()
             .enumerate()
-            .map(|(s, sub)| {
+            .map(|(k, sub)| {
+                let s = first + k;
                 let inv = &inverse[s];
                 // Every diagonal entry is stored (an explicit zero when the
                 // caller left it out, duplicates being summed): a dof with
@@ -534,10 +594,7 @@ impl AlgebraicProblem {
                 SubdomainOperator::from_matrix(s, stiffness, 64, kernel.as_ref(), Some(&rank), &name)
             })
             .collect();
-        let mut operators = Vec::with_capacity(ns);
-        for op in ops {
-            operators.push(op?);
-        }
+        let operators = placement.agree(ops.into_iter().collect::<Result<Vec<_>>>())?;
         let mut loads: Vec<SubdomainLoad> = subs
             .iter()
             .map(|sub| SubdomainLoad {
@@ -552,8 +609,8 @@ impl AlgebraicProblem {
                 dofs[k] = inverse[cable.subdomain][d] as u32;
                 coef[k] = v;
             }
-            loads[cable.subdomain].cables.push(CableColumn {
-                cable: c,
+            loads[cable.subdomain - first].cables.push(CableColumn {
+                cable: cable_base + c,
                 dofs,
                 coef,
                 k: cable.k,
@@ -564,12 +621,12 @@ impl AlgebraicProblem {
             decomposition: &dec,
             operators,
             loads,
-            placement: crate::comm::Placement::Process,
+            placement: placement.clone(),
             dof_points,
-            n_cables: self.cables.len(),
+            n_cables,
         };
         let solver = DdSolver::from_problem(problem, options)?;
-        let scratch = order.iter().map(|o| vec![0.0; o.len()]).collect();
+        let scratch = order[held].iter().map(|o| vec![0.0; o.len()]).collect();
         Ok(AlgebraicSolver {
             decomposition: dec,
             solver,
@@ -577,6 +634,23 @@ impl AlgebraicProblem {
             scratch,
             n_global: self.n_global,
         })
+    }
+}
+
+/// Every global dof in some subdomain's map.
+fn check_covered<'a>(maps: impl Iterator<Item = &'a [usize]>, n_global: usize) -> Result<()> {
+    let mut covered = vec![false; n_global];
+    for map in maps {
+        for &g in map {
+            covered[g] = true;
+        }
+    }
+    match covered.iter().position(|c| !c) {
+        Some(g) => Err(bad(
+            "local_to_global",
+            format!("global dof {g} belongs to no subdomain"),
+        )),
+        None => Ok(()),
     }
 }
 
@@ -659,18 +733,22 @@ impl AlgebraicSolver {
         self.solver.solve(f, false, None)
     }
 
-    /// Solves for right-hand sides given per subdomain: `rhs[s]` has
+    /// Solves for right-hand sides given per subdomain (those of
+    /// [`AlgebraicProblem::owned`] under MPI): `rhs[s]` has
     /// `n_local(s)` entries in the subdomain's local numbering (its share of
     /// the load; a force on an interface dof may be split between
     /// subdomains in any way). Nothing is added: include prestrain loads.
     pub fn solve_local(&mut self, rhs: &[&[f64]]) -> Result<Outcome> {
-        if rhs.len() != self.order.len() {
+        let held = self.solver.owned();
+        if rhs.len() != held.len() {
             return Err(bad(
                 "rhs",
-                format!("{} subdomain vectors given, expected {}", rhs.len(), self.order.len()),
+                format!("{} subdomain vectors given, expected {}", rhs.len(), held.len()),
             ));
         }
-        for (s, ((r, order), buf)) in rhs.iter().zip(&self.order).zip(&mut self.scratch).enumerate() {
+        let first = held.start;
+        for (k, ((r, order), buf)) in rhs.iter().zip(&self.order[held]).zip(&mut self.scratch).enumerate() {
+            let s = first + k;
             let name = format!("rhs[{s}]");
             if r.len() != order.len() {
                 return Err(bad(

@@ -1222,7 +1222,21 @@ fn algebraic_bad_arguments() {
         expect_err(nsdd_alg_new(2, 0, &mut h), NsddStatus::InvalidArgument, "n_global_dofs");
         expect_err(nsdd_alg_new(5, 4, &mut h), NsddStatus::InvalidArgument, "exceeds");
         expect_err(nsdd_alg_new(1, 4, null_mut()), NsddStatus::NullPointer, "out");
+        // The MPI entry point outside MPI: refused with a message, no handle
+        // (without the `mpi` feature: not built in; with it: MPI is not
+        // initialised in this test process).
+        let mut m = std::ptr::dangling_mut::<NsddAlgebraic>();
+        let st = nsdd_alg_new_mpi(2, 4, 0, &mut m);
+        assert!(m.is_null());
+        if cfg!(feature = "mpi") {
+            expect_err(st, NsddStatus::InvalidArgument, "MPI is not initialised");
+        } else {
+            expect_err(st, NsddStatus::MethodNotApplicable, "built without MPI");
+        }
         ok(nsdd_alg_new(2, 3, &mut h));
+        let (mut first, mut count) = (9usize, 9usize);
+        ok(nsdd_alg_owned(h, &mut first, &mut count));
+        assert_eq!((first, count), (0, 2), "one process sets every subdomain");
 
         // nsdd_alg_set_subdomain
         let set = |s, n, rp: &[usize], ci: &[usize], va: &[f64], l2g: &[usize]| {

@@ -5,6 +5,7 @@
 //! handles, the pointer checks and the status codes).
 
 use super::*;
+use std::ffi::c_int;
 
 /// A bad argument found by the library's checks is INVALID_ARGUMENT here
 /// (its message without the "invalid input" prefix); other errors keep
@@ -47,6 +48,78 @@ pub unsafe extern "C" fn nsdd_alg_new(
         };
         unsafe { out.write(boxed(h)) };
         Ok(())
+    })
+}
+
+/// Like `nsdd_alg_new`, for a problem spread over the ranks of an MPI
+/// communicator, given as its Fortran handle `comm` (`MPI_Comm_c2f(comm)`,
+/// so this header does not depend on one MPI's `MPI_Comm` type); nsdd works
+/// on its own duplicate of it. Every rank calls it with the same sizes;
+/// rank `r` of `p` owns subdomains `floor(r n / p)` to `floor((r+1) n / p)
+/// - 1` (`nsdd_alg_owned`) and sets only those (matrix, kernel, cables),
+/// with the dof points of at least their dofs. `nsdd_alg_setup` and the
+/// solves are then collective: every rank calls them, and every rank gets
+/// the whole displacement and the same status (an error on one rank, such
+/// as an indefinite subdomain, is returned on all of them). `nsdd_alg_solve`
+/// takes the right-hand sides of this rank's subdomains only. Cables are
+/// numbered rank by rank in the slacks (rank r's after those of the ranks
+/// below it). MPI must be initialised with at least MPI_THREAD_FUNNELED and
+/// nsdd called from the thread that initialised it. A library built
+/// without the `mpi` feature returns METHOD_NOT_APPLICABLE.
+///
+/// # Safety
+/// `out` must point to writable storage for one pointer; `comm` must be
+/// the Fortran handle of a live intra-communicator.
+#[unsafe(no_mangle)]
+pub unsafe extern "C" fn nsdd_alg_new_mpi(
+    n_subdomains: usize,
+    n_global_dofs: usize,
+    comm: c_int,
+    out: *mut *mut NsddAlgebraic,
+) -> NsddStatus {
+    ffi_guard(|| {
+        unsafe { clear_out(out, "out")? };
+        #[cfg(feature = "mpi")]
+        {
+            let c = unsafe { crate::comm::mpi::MpiComm::from_fortran(comm) }.map_err(arg)?;
+            let placement = crate::comm::Placement::Mpi(c);
+            let h = NsddAlgebraic {
+                problem: AlgebraicProblem::new_in(n_subdomains, n_global_dofs, placement).map_err(arg)?,
+                setup: None,
+            };
+            unsafe { out.write(boxed(h)) };
+            Ok(())
+        }
+        #[cfg(not(feature = "mpi"))]
+        {
+            let _ = (n_subdomains, n_global_dofs, comm);
+            Err(
+                Error::MethodNotApplicable("this nsdd library was built without MPI (cargo feature `mpi`)".into())
+                    .into(),
+            )
+        }
+    })
+}
+
+/// The subdomains this process sets: `*out_first` and `*out_count` (all
+/// of them for `nsdd_alg_new`, the rank's block for `nsdd_alg_new_mpi`).
+///
+/// # Safety
+/// `alg` must be a live algebraic handle; the outputs must point to
+/// writable `size_t`s.
+#[unsafe(no_mangle)]
+pub unsafe extern "C" fn nsdd_alg_owned(
+    alg: *const NsddAlgebraic,
+    out_first: *mut usize,
+    out_count: *mut usize,
+) -> NsddStatus {
+    ffi_guard(|| {
+        let h = unsafe { handle(alg, "alg")? };
+        let held = h.problem.owned();
+        unsafe {
+            write_out(out_first, "out_first", held.start)?;
+            write_out(out_count, "out_count", held.len())
+        }
     })
 }
 
@@ -219,7 +292,9 @@ pub unsafe extern "C" fn nsdd_alg_add_cable(
     })
 }
 
-/// Number of cables added so far into `*out`.
+/// Number of cables into `*out`: after `nsdd_alg_setup`, the entries of
+/// the slacks `out_lambda` (under MPI, every rank's cables); before it, the
+/// cables this process added so far.
 ///
 /// # Safety
 /// `alg` must be a live algebraic handle; `out` must point to a writable `size_t`.
@@ -227,7 +302,8 @@ pub unsafe extern "C" fn nsdd_alg_add_cable(
 pub unsafe extern "C" fn nsdd_alg_num_cables(alg: *const NsddAlgebraic, out: *mut usize) -> NsddStatus {
     ffi_guard(|| {
         let h = unsafe { handle(alg, "alg")? };
-        unsafe { write_out(out, "out", h.problem.n_cables()) }
+        let n = h.setup.as_ref().map_or(h.problem.n_cables(), |st| st.n_cables());
+        unsafe { write_out(out, "out", n) }
     })
 }
 
@@ -306,7 +382,7 @@ pub(super) unsafe fn alg_write_outcome(
     }
     unsafe { slice_mut(out_u, h.problem.n_global_dofs(), "out_u")? }.copy_from_slice(&out.u);
     if !out_lambda.is_null() {
-        unsafe { slice_mut(out_lambda, h.problem.n_cables(), "out_lambda")? }.copy_from_slice(&out.lambda);
+        unsafe { slice_mut(out_lambda, out.lambda.len(), "out_lambda")? }.copy_from_slice(&out.lambda);
     }
     unsafe {
         write_opt(out_iterations, "out_iterations", out.iterations)?;
@@ -337,7 +413,8 @@ pub(super) fn check_out_ptrs(out_u: *mut f64, out_lambda: *mut f64, n_cables: us
 ///
 /// # Safety
 /// `alg` must be a live algebraic handle; `rhs` must point to `n_subdomains`
-/// pointers, each to `n_local(s)` doubles; outputs as described above.
+/// pointers (this rank's `count` of `nsdd_alg_owned` under MPI), each to
+/// `n_local(s)` doubles; outputs as described above.
 #[unsafe(no_mangle)]
 pub unsafe extern "C" fn nsdd_alg_solve(
     alg: *mut NsddAlgebraic,
@@ -349,10 +426,10 @@ pub unsafe extern "C" fn nsdd_alg_solve(
 ) -> NsddStatus {
     unsafe {
         alg_solve_with(alg, out_u, out_lambda, out_iterations, out_converged, |problem, st| {
-            let ns = problem.n_subdomains();
-            let ptrs = slice(rhs, ns, "rhs")?;
-            let mut local: Vec<&[f64]> = Vec::with_capacity(ns);
-            for (s, &p) in ptrs.iter().enumerate() {
+            let held = problem.owned();
+            let ptrs = slice(rhs, held.len(), "rhs")?;
+            let mut local: Vec<&[f64]> = Vec::with_capacity(held.len());
+            for (s, &p) in held.zip(ptrs) {
                 let n = problem.n_local(s).unwrap_or(0);
                 local.push(slice(p, n, &format!("rhs[{s}]"))?);
             }
@@ -402,7 +479,7 @@ unsafe fn alg_solve_with(
     ffi_guard(|| {
         let h = unsafe { handle_mut(alg, "alg")? };
         let st = h.setup.as_mut().ok_or_else(not_set_up)?;
-        check_out_ptrs(out_u, out_lambda, h.problem.n_cables())?;
+        check_out_ptrs(out_u, out_lambda, st.n_cables())?;
         let out = solve(&h.problem, st)?;
         unsafe { alg_write_outcome(h, out, out_u, out_lambda, out_iterations, out_converged) }
     })

@@ -108,6 +108,15 @@ impl Placement {
         }
     }
 
+    /// Every process's `local`, concatenated in rank order (set-up only).
+    pub fn gather(&self, local: &[f64]) -> Vec<f64> {
+        match self {
+            Placement::Process => local.to_vec(),
+            #[cfg(feature = "mpi")]
+            Placement::Mpi(c) => c.gather(local),
+        }
+    }
+
     /// The seam of a set-up on `dec` for this placement.
     pub(crate) fn seam(&self, dec: &Decomposition) -> Seam {
         let ends = dec.interfaces.iter().map(|it| (it.lo, it.hi)).collect();
