@@ -417,6 +417,18 @@ pub fn solve_in(
         Prepared::Direct(_) => None,
     };
     if let Some(dd) = last_dd {
+        if let Some(t) = dd.seam().traffic_by_rank() {
+            let col = |k: usize| t.iter().map(|r| r[k].to_string()).collect::<Vec<_>>().join(", ");
+            notes.push(format!(
+                "mpi: {} ranks; per rank since the last set-up: trace messages [{}], trace bytes [{}], \
+                 reductions [{}], reduction bytes [{}]",
+                t.len(),
+                col(0),
+                col(1),
+                col(2),
+                col(3)
+            ));
+        }
         if let Some(r) = dd.coarse_residual().filter(|r| !(*r <= COARSE_RESIDUAL_NOTE)) {
             notes.push(format!(
                 "the coarse problem was solved to a backward error of only {r:.1e} (badly conditioned \

@@ -215,6 +215,28 @@ pub enum Seam {
     Mpi(mpi::MpiSeam),
 }
 
+impl Seam {
+    /// Under MPI, every rank's traffic since the set-up as `[trace
+    /// messages, trace bytes, reductions, reduction bytes]` per rank, in
+    /// rank order (collective: every rank calls it); `None` in one process.
+    pub fn traffic_by_rank(&self) -> Option<Vec<[u64; 4]>> {
+        match self {
+            Seam::Threads(_) => None,
+            #[cfg(feature = "mpi")]
+            Seam::Mpi(c) => {
+                let t = c.traffic();
+                let mine = [t.trace_messages, t.trace_bytes, t.reductions, t.reduction_bytes].map(|x| x as f64);
+                Some(
+                    c.gather(&mine)
+                        .chunks_exact(4)
+                        .map(|p| [p[0] as u64, p[1] as u64, p[2] as u64, p[3] as u64])
+                        .collect(),
+                )
+            }
+        }
+    }
+}
+
 macro_rules! dispatch {
     ($self:ident, $c:ident => $e:expr) => {
         match $self {

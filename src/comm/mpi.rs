@@ -214,9 +214,22 @@ pub struct MpiSeam {
     /// Per subdomain: its ghost buffer, if it neighbours this rank.
     ghost_of: Vec<usize>,
     buffers: Mutex<Buffers>,
-    /// Trace messages sent and their bytes (for the benchmarks).
+    /// Trace messages sent and their bytes, reductions and their bytes
+    /// (for the benchmarks).
     messages: AtomicU64,
     bytes: AtomicU64,
+    reductions: AtomicU64,
+    reduced_bytes: AtomicU64,
+}
+
+/// What one rank sent since its set-up: trace messages to neighbour ranks
+/// and all-reductions (sums, coarse right-hand sides), with their payload.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize)]
+pub struct Traffic {
+    pub trace_messages: u64,
+    pub trace_bytes: u64,
+    pub reductions: u64,
+    pub reduction_bytes: u64,
 }
 
 impl MpiSeam {
@@ -290,15 +303,25 @@ impl MpiSeam {
             }),
             messages: AtomicU64::new(0),
             bytes: AtomicU64::new(0),
+            reductions: AtomicU64::new(0),
+            reduced_bytes: AtomicU64::new(0),
         }
     }
 
-    /// Trace messages this rank has sent, and their payload bytes.
-    pub fn traffic(&self) -> (u64, u64) {
-        (
-            self.messages.load(Ordering::Relaxed),
-            self.bytes.load(Ordering::Relaxed),
-        )
+    /// What this rank has sent since its set-up.
+    pub fn traffic(&self) -> Traffic {
+        let l = |a: &AtomicU64| a.load(Ordering::Relaxed);
+        Traffic {
+            trace_messages: l(&self.messages),
+            trace_bytes: l(&self.bytes),
+            reductions: l(&self.reductions),
+            reduction_bytes: l(&self.reduced_bytes),
+        }
+    }
+
+    fn count_reduction(&self, n: usize) {
+        self.reductions.fetch_add(1, Ordering::Relaxed);
+        self.reduced_bytes.fetch_add(8 * n as u64, Ordering::Relaxed);
     }
 
     /// Sends every link's `send` buffer and receives its `recv` buffer.
@@ -353,6 +376,7 @@ impl MpiSeam {
         }
         parts[..n].iter_mut().for_each(|x| *x = 0.0);
         fill(&mut parts[..n]);
+        self.count_reduction(n);
         // SAFETY: both buffers hold `n` doubles.
         unsafe {
             ffi::MPI_Allreduce(
@@ -519,6 +543,7 @@ impl Communicator for MpiSeam {
                 let (off, x) = sub_part(s);
                 part[nf + off..nf + off + x.len()].copy_from_slice(x);
             }
+            self.count_reduction(n);
             // SAFETY: `part` and `coarse.rhs` hold `n` doubles each.
             unsafe {
                 ffi::MPI_Allreduce(
