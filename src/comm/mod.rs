@@ -123,7 +123,7 @@ impl Placement {
         match self {
             Placement::Process => Seam::Threads(Threads::new(dec.len(), ends)),
             #[cfg(feature = "mpi")]
-            Placement::Mpi(c) => Seam::Mpi(mpi::MpiSeam::new(c.clone(), dec)),
+            Placement::Mpi(c) => Seam::Mpi(Box::new(mpi::MpiSeam::new(c.clone(), dec))),
         }
     }
 }
@@ -212,7 +212,7 @@ pub trait Communicator: Send + Sync {
 pub enum Seam {
     Threads(Threads),
     #[cfg(feature = "mpi")]
-    Mpi(mpi::MpiSeam),
+    Mpi(Box<mpi::MpiSeam>),
 }
 
 impl Seam {
