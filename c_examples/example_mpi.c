@@ -13,11 +13,12 @@
 #include <mpi.h>
 #include <stdio.h>
 #include <stdlib.h>
+#include <string.h>
 
 enum { S = 4, M = 4, N = S * M };
 
 static int failures = 0;
-static int rank = 0;
+static int rank = 0, size = 1;
 
 static void check_status(NsddStatus st, const char *what) {
     if (st != NSDD_STATUS_OK) {
@@ -130,12 +131,29 @@ static void chain(uint32_t method, double kc) {
         }
         expect("u of node N", u[N - 1], t * N / k, 1e-8);
         if (kc > 0.0) expect("cable slack lambda", lambda[0], c == 0 ? N * P / k : 0.0, 1e-8);
+        if (kc == 0.0) {
+            /* A NULL right-hand side on the last rank only: every rank gets
+             * its status and message back (none waits in the solve). */
+            const double *bad[S];
+            for (size_t i = 0; i < count; i++) bad[i] = rhs[i];
+            if (rank == size - 1) bad[0] = NULL;
+            NsddStatus st = nsdd_alg_solve(alg, bad, u, NULL, NULL, NULL);
+            size_t n = nsdd_last_error_message(NULL, 0);
+            char *msg = malloc(n);
+            nsdd_last_error_message(msg, n);
+            int ok = st == NSDD_STATUS_NULL_POINTER && strstr(msg, "rhs[") != NULL;
+            if (!ok) failures++;
+            if (rank == 0)
+                printf("  NULL rhs on rank %d only: rank 0 gets %s (%s) %s\n", size - 1,
+                       nsdd_status_name((int32_t)st), msg, ok ? "ok" : "WRONG");
+            free(msg);
+        }
     }
     nsdd_alg_destroy(alg);
 }
 
 int main(int argc, char **argv) {
-    int level = 0, size = 0;
+    int level = 0;
     MPI_Init_thread(&argc, &argv, MPI_THREAD_FUNNELED, &level);
     MPI_Comm_rank(MPI_COMM_WORLD, &rank);
     MPI_Comm_size(MPI_COMM_WORLD, &size);

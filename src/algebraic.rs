@@ -40,7 +40,7 @@
 //! # Ok::<(), nsdd::Error>(())
 //! ```
 
-use crate::comm::Placement;
+use crate::comm::{Communicator, Placement};
 use crate::dd::{CableColumn, DdOptions, DdProblem, DdSolver, DdStats, SubdomainLoad, NO_DOF};
 use crate::decomposition::Decomposition;
 use crate::error::{Error, Result};
@@ -146,6 +146,11 @@ impl AlgebraicProblem {
     /// The subdomains this process sets: all of them, or its MPI rank's block.
     pub fn owned(&self) -> std::ops::Range<usize> {
         self.placement.owned(self.subdomains.len())
+    }
+
+    /// Where the subdomains live.
+    pub fn placement(&self) -> &Placement {
+        &self.placement
     }
 
     pub fn n_subdomains(&self) -> usize {
@@ -723,13 +728,17 @@ impl AlgebraicSolver {
     /// the subdomain copies), `lambda` the cable slacks (> 0 for a slack
     /// cable); a diverged run is an outcome ([`Outcome::divergence`]).
     pub fn solve(&mut self, f: &[f64]) -> Result<Outcome> {
-        if f.len() != self.n_global {
-            return Err(bad(
+        let checked = if f.len() != self.n_global {
+            Err(bad(
                 "f",
                 format!("f has {} entries, expected n_global_dofs = {}", f.len(), self.n_global),
-            ));
-        }
-        check_finite("f", f)?;
+            ))
+        } else {
+            check_finite("f", f)
+        };
+        // Under MPI a bad input on one rank fails every rank (no rank
+        // waits in the iteration for one that returned).
+        self.solver.seam().agree(checked)?;
         self.solver.solve(f, false, None)
     }
 
@@ -739,6 +748,15 @@ impl AlgebraicSolver {
     /// the load; a force on an interface dof may be split between
     /// subdomains in any way). Nothing is added: include prestrain loads.
     pub fn solve_local(&mut self, rhs: &[&[f64]]) -> Result<Outcome> {
+        let checked = self.take_rhs(rhs);
+        self.solver.seam().agree(checked)?;
+        let views: Vec<&[f64]> = self.scratch.iter().map(|v| v.as_slice()).collect();
+        self.solver.solve_local(&views, false, None)
+    }
+
+    /// Checks the right-hand sides of [`Self::solve_local`] and copies them
+    /// into the decomposition's numbering.
+    fn take_rhs(&mut self, rhs: &[&[f64]]) -> Result<()> {
         let held = self.solver.owned();
         if rhs.len() != held.len() {
             return Err(bad(
@@ -765,8 +783,7 @@ impl AlgebraicSolver {
                 *b = r[i];
             }
         }
-        let views: Vec<&[f64]> = self.scratch.iter().map(|v| v.as_slice()).collect();
-        self.solver.solve_local(&views, false, None)
+        Ok(())
     }
 
     /// The step length `d` chosen at set-up (the stationary iteration).

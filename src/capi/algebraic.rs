@@ -311,11 +311,50 @@ pub(super) fn alg_setup(h: &mut NsddAlgebraic, opts: &SolveOptions) -> FfiResult
     h.setup = None;
     // Settings errors keep their status; the completeness checks are bad
     // arguments; the set-up's own errors (bad kernel, mechanism, ...) keep
-    // theirs.
-    let coarse = DdOptions::from_settings(opts)?.coarse;
-    h.problem.check_complete(coarse).map_err(arg)?;
+    // theirs. All of them on every rank under MPI.
+    let checked = DdOptions::from_settings(opts)
+        .map_err(Fail::from)
+        .and_then(|o| h.problem.check_complete(o.coarse).map_err(arg));
+    collective(h.problem.placement(), checked)?;
     h.setup = Some(h.problem.build(opts)?);
     Ok(())
+}
+
+/// `r` on every rank under MPI: a failure on one rank (a NULL or short
+/// array, a bad option) is returned with its status and message on all of
+/// them, so that none waits in a collective step for a rank that returned.
+fn collective<T>(placement: &crate::comm::Placement, r: FfiResult<T>) -> FfiResult<T> {
+    placement.agree_by(
+        r,
+        |f| {
+            let mut v = (f.status as i32).to_le_bytes().to_vec();
+            v.extend_from_slice(f.message.as_bytes());
+            v
+        },
+        |b| {
+            let code = b.get(..4).map_or(NsddStatus::Numerical as i32, |c| {
+                i32::from_le_bytes([c[0], c[1], c[2], c[3]])
+            });
+            let status = [
+                NsddStatus::NullPointer,
+                NsddStatus::InvalidArgument,
+                NsddStatus::InvalidInput,
+                NsddStatus::ParseError,
+                NsddStatus::IoError,
+                NsddStatus::Mechanism,
+                NsddStatus::IndefiniteSubdomain,
+                NsddStatus::MethodNotApplicable,
+                NsddStatus::Diverged,
+                NsddStatus::Numerical,
+                NsddStatus::NotSolved,
+                NsddStatus::Panic,
+            ]
+            .into_iter()
+            .find(|s| *s as i32 == code)
+            .unwrap_or(NsddStatus::Numerical);
+            fail(status, String::from_utf8_lossy(b.get(4..).unwrap_or_default()))
+        },
+    )
 }
 
 /// Factors every subdomain (in parallel), builds the interfaces, the macro
@@ -427,12 +466,16 @@ pub unsafe extern "C" fn nsdd_alg_solve(
     unsafe {
         alg_solve_with(alg, out_u, out_lambda, out_iterations, out_converged, |problem, st| {
             let held = problem.owned();
-            let ptrs = slice(rhs, held.len(), "rhs")?;
-            let mut local: Vec<&[f64]> = Vec::with_capacity(held.len());
-            for (s, &p) in held.zip(ptrs) {
-                let n = problem.n_local(s).unwrap_or(0);
-                local.push(slice(p, n, &format!("rhs[{s}]"))?);
-            }
+            let local = (|| -> FfiResult<Vec<&[f64]>> {
+                let ptrs = slice(rhs, held.len(), "rhs")?;
+                let mut local: Vec<&[f64]> = Vec::with_capacity(held.len());
+                for (s, &p) in held.clone().zip(ptrs) {
+                    let n = problem.n_local(s).unwrap_or(0);
+                    local.push(slice(p, n, &format!("rhs[{s}]"))?);
+                }
+                Ok(local)
+            })();
+            let local = collective(problem.placement(), local)?;
             st.solve_local(&local).map_err(arg)
         })
     }
@@ -456,7 +499,7 @@ pub unsafe extern "C" fn nsdd_alg_solve_global(
 ) -> NsddStatus {
     unsafe {
         alg_solve_with(alg, out_u, out_lambda, out_iterations, out_converged, |problem, st| {
-            let f = slice(f, problem.n_global_dofs(), "f")?;
+            let f = collective(problem.placement(), slice(f, problem.n_global_dofs(), "f"))?;
             st.solve(f).map_err(arg)
         })
     }
@@ -479,7 +522,7 @@ unsafe fn alg_solve_with(
     ffi_guard(|| {
         let h = unsafe { handle_mut(alg, "alg")? };
         let st = h.setup.as_mut().ok_or_else(not_set_up)?;
-        check_out_ptrs(out_u, out_lambda, st.n_cables())?;
+        collective(h.problem.placement(), check_out_ptrs(out_u, out_lambda, st.n_cables()))?;
         let out = solve(&h.problem, st)?;
         unsafe { alg_write_outcome(h, out, out_u, out_lambda, out_iterations, out_converged) }
     })

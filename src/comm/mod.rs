@@ -108,6 +108,24 @@ impl Placement {
         }
     }
 
+    /// [`Self::agree`] for any error type, sent between processes as
+    /// `encode` writes it and `decode` reads it back.
+    pub fn agree_by<T, E>(
+        &self,
+        r: std::result::Result<T, E>,
+        encode: impl FnOnce(&E) -> Vec<u8>,
+        decode: impl FnOnce(&[u8]) -> E,
+    ) -> std::result::Result<T, E> {
+        match self {
+            Placement::Process => {
+                let _ = (encode, decode);
+                r
+            }
+            #[cfg(feature = "mpi")]
+            Placement::Mpi(c) => c.agree_by(r, encode, decode),
+        }
+    }
+
     /// Every process's `local`, concatenated in rank order (set-up only).
     pub fn gather(&self, local: &[f64]) -> Vec<f64> {
         match self {

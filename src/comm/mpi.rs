@@ -114,6 +114,23 @@ impl MpiComm {
     /// See [`super::Placement::agree`]: the error of the lowest failing
     /// rank, sent to all as JSON.
     pub(crate) fn agree<T>(&self, r: Result<T>) -> Result<T> {
+        self.agree_by(
+            r,
+            |e| serde_json::to_vec(e).unwrap_or_default(),
+            |b| {
+                serde_json::from_slice(b)
+                    .unwrap_or_else(|_| Error::Numerical("another rank failed (its error could not be read)".into()))
+            },
+        )
+    }
+
+    /// [`Self::agree`] for any error type, encoded as the caller says.
+    pub(crate) fn agree_by<T, E>(
+        &self,
+        r: std::result::Result<T, E>,
+        encode: impl FnOnce(&E) -> Vec<u8>,
+        decode: impl FnOnce(&[u8]) -> E,
+    ) -> std::result::Result<T, E> {
         let c = self.comm();
         let failed = c_int::from(r.is_err());
         let mut all = vec![0 as c_int; self.size()];
@@ -122,7 +139,7 @@ impl MpiComm {
             return r;
         };
         let mut bytes = match &r {
-            Err(e) if root == self.rank() => serde_json::to_vec(e).unwrap_or_default(),
+            Err(e) if root == self.rank() => encode(e),
             _ => Vec::new(),
         };
         let mut len = bytes.len() as u64;
@@ -132,8 +149,7 @@ impl MpiComm {
         at.broadcast_into(&mut bytes[..]);
         match r {
             Err(e) if root == self.rank() => Err(e),
-            _ => Err(serde_json::from_slice(&bytes)
-                .unwrap_or_else(|_| Error::Numerical(format!("rank {root} failed (its error could not be read)")))),
+            _ => Err(decode(&bytes)),
         }
     }
 
