@@ -341,10 +341,7 @@ fn gen_help() -> String {
 /// process. The universe finalises MPI when dropped, at the end of `main`.
 #[cfg(feature = "mpi")]
 fn start_placement() -> std::result::Result<(Placement, Option<mpi::environment::Universe>), String> {
-    let launched = ["OMPI_COMM_WORLD_SIZE", "PMI_SIZE", "PMIX_RANK", "MPI_LOCALNRANKS"]
-        .iter()
-        .any(|v| std::env::var_os(v).is_some());
-    if !launched {
+    if !launched_by_mpi() {
         return Ok((Placement::Process, None));
     }
     let (universe, level) = mpi::initialize_with_threading(mpi::Threading::Funneled)
@@ -355,8 +352,27 @@ fn start_placement() -> std::result::Result<(Placement, Option<mpi::environment:
     Ok((Placement::Mpi(nsdd::comm::mpi::MpiComm::world()), Some(universe)))
 }
 
+/// Whether an MPI launcher (OpenMPI, MPICH/Hydra, PMIx) started this process.
+fn launched_by_mpi() -> bool {
+    ["OMPI_COMM_WORLD_SIZE", "PMI_SIZE", "PMIX_RANK", "MPI_LOCALNRANKS"]
+        .iter()
+        .any(|v| std::env::var_os(v).is_some())
+}
+
+/// Without the `mpi` feature, several ranks would each solve the whole
+/// problem and write the same files: refused with the way out.
 #[cfg(not(feature = "mpi"))]
 fn start_placement() -> std::result::Result<(Placement, Option<()>), String> {
+    let ranks = ["OMPI_COMM_WORLD_SIZE", "PMI_SIZE"]
+        .iter()
+        .find_map(|v| std::env::var(v).ok()?.parse::<usize>().ok());
+    if launched_by_mpi() && ranks.is_some_and(|n| n > 1) {
+        return Err(
+            "this nsdd was built without MPI: under mpirun every rank would solve the whole \
+                    problem and write the same files; rebuild with `cargo build --release --features mpi`"
+                .into(),
+        );
+    }
     Ok((Placement::Process, None))
 }
 
