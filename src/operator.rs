@@ -392,6 +392,22 @@ impl<C: Communicator> InterfaceOperator<C> {
         self.comm.sum_interfaces(|i| [dot(&x[i], &self.ifaces[i].jump)])[0]
     }
 
+    /// `(Σ_Γ ‖P_Γᵀ x_Γ‖², Σ_Γ ‖x_Γ‖²)`: the part of `x` in the macro space
+    /// and the whole. A residual of the CG operator has no macro part in
+    /// exact arithmetic (the coarse step removes it).
+    pub fn macro_part2(&self, x: &[Vec<f64>]) -> (f64, f64) {
+        let [m, n] = self.comm.sum_interfaces(|i| {
+            let p = &self.ifaces[i].p;
+            let mut m = 0.0;
+            for q in 0..p.ncols() {
+                let c: f64 = p.col(q).iter().zip(&x[i]).map(|(a, b)| a * b).sum();
+                m += c * c;
+            }
+            [m, kernels::norm2(&x[i])]
+        });
+        (m, n)
+    }
+
     /// `Σ_Γ ‖x_Γ‖²` over the interfaces.
     pub fn norm2(&self, x: &[Vec<f64>]) -> f64 {
         self.comm.sum_interfaces(|i| [kernels::norm2(&x[i])])[0]

@@ -26,6 +26,13 @@ const CG_MAX_RESTARTS: usize = 10;
 /// recurrences drift by more than the tolerance and CG takes zero steps).
 const CG_STAGNATION_WINDOW: usize = 50;
 const CG_PROGRESS: f64 = 0.5;
+/// Restart when the macro part `‖Pᵀ r‖` of the residual (zero in exact
+/// arithmetic) exceeds this fraction of `‖r‖`.
+const CG_DRIFT: f64 = 0.5;
+/// Iterations between two restarts on the macro part: at the round-off
+/// floor the residual is noise and its macro part is half of it as often as
+/// not; a restart every iteration would only burn the restart budget.
+const CG_DRIFT_SPACING: usize = 10;
 /// A jump below this fraction of the displacement is round-off (a few
 /// hundred ε): where the iteration stalls there, the message says so.
 const ROUNDOFF_JUMP: f64 = 1e-12;
@@ -219,7 +226,14 @@ impl DdSolver {
             }
             let grew = indicator > CG_RESTART_GROWTH * best;
             let stagnant = iterations - milestone_at > CG_STAGNATION_WINDOW;
-            if grew || stagnant {
+            // A macro part of the residual (the coarse solve's round-off,
+            // once large against a residual that has since fallen by orders)
+            // is invisible to the preconditioner, which projects it out: CG
+            // cannot reduce it and stagnates on it. Restart as soon as it
+            // dominates instead of waiting for the stagnation window.
+            let (m2, r2) = self.op.macro_part2(&ws.r);
+            let drifted = m2.sqrt() > CG_DRIFT * r2.sqrt() && iterations - restart_at >= CG_DRIFT_SPACING;
+            if grew || stagnant || drifted {
                 if restarts == CG_MAX_RESTARTS {
                     let (jump, force) = self.cg_indicator_parts(ws, b_norm);
                     let floor = if jump < ROUNDOFF_JUMP && force > jump {
@@ -235,6 +249,12 @@ impl DdSolver {
                     let why = if grew {
                         format!(
                             "the residual grew again after {CG_MAX_RESTARTS} restarts from the true residual{floor}"
+                        )
+                    } else if drifted {
+                        format!(
+                            "the residual's macro part, which the preconditioner cannot reduce (round-off of the \
+                             coarse solve), dominated it again after {CG_MAX_RESTARTS} restarts from the true \
+                             residual{floor}"
                         )
                     } else {
                         format!(
