@@ -218,6 +218,55 @@ fn load_path_and_load_cases_on_2_ranks() {
         fz: vec![-2.0, 1.0],
     });
     check_all(&scene, "grid-path", &[(Method::Cg, 4), (Method::Multilevel, 4)], &[2]);
+
+    // VTK: rank 0 alone writes the series, byte for byte what one process
+    // with one thread writes.
+    let path = dir().join("grid-path.toml");
+    let vtk = |sub: &str, np: usize| -> Vec<(String, Vec<u8>)> {
+        let d = dir().join(sub);
+        std::fs::create_dir_all(&d).unwrap();
+        let out = d.join("r.vtu");
+        let args = [
+            "solve",
+            path.to_str().unwrap(),
+            "--method",
+            "cg",
+            "--subdomains",
+            "4",
+            "--vtk",
+            out.to_str().unwrap(),
+        ];
+        let o = if np == 0 {
+            Command::new(env!("CARGO_BIN_EXE_nsdd"))
+                .args(args)
+                .env("RAYON_NUM_THREADS", "1")
+                .output()
+                .unwrap()
+        } else {
+            mpirun(np, &args)
+        };
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let mut files: Vec<(String, Vec<u8>)> = std::fs::read_dir(&d)
+            .unwrap()
+            .map(|e| {
+                let e = e.unwrap();
+                (
+                    e.file_name().to_string_lossy().into_owned(),
+                    std::fs::read(e.path()).unwrap(),
+                )
+            })
+            .collect();
+        files.sort();
+        files
+    };
+    let (one, two) = (vtk("vtk-process", 0), vtk("vtk-mpi", 2));
+    assert_eq!(
+        one.len(),
+        5,
+        "3 steps, the series and the top level: {:?}",
+        one.iter().map(|f| &f.0).collect::<Vec<_>>()
+    );
+    assert!(one == two, "the VTK files of 2 ranks differ from one process's");
 }
 
 #[test]
