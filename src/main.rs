@@ -385,6 +385,15 @@ fn is_root() -> bool {
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    // faer's dense kernels (the coarse operator's products, the macro
+    // bases' and deluxe faces' eigensolves) split their work by the number
+    // of threads by default, and so round differently with 1 and 2
+    // threads; CG amplifies that (72 against 82 iterations on the 130²
+    // plate). They run inside the per-subdomain parallel loops anyway, so
+    // the command line keeps them sequential: its results do not depend on
+    // the thread count, at the same speed (BENCHMARKS.md). The direct
+    // solver passes its own parallelism to its factorization.
+    faer::set_global_parallelism(faer::Par::Seq);
     let (placement, _universe) = match start_placement() {
         Ok(p) => p,
         Err(e) => {
