@@ -29,7 +29,10 @@
  *     concurrently; a handle may move between threads between calls;
  *   - the last-error message is per thread;
  *   - solvers run their subdomains in parallel on an internal (rayon) thread
- *     pool shared by the whole process.
+ *     pool shared by the whole process (RAYON_NUM_THREADS sets its size);
+ *     the results are the same, bit for bit, whatever that size: the first
+ *     call makes the dense kernels of faer (the linear algebra library
+ *     nsdd is built on) sequential for the whole process.
  *
  * Linking: -lnsdd (see nsdd.pc / c_examples/Makefile).
  */

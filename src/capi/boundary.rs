@@ -68,11 +68,22 @@ pub(super) fn panic_message(payload: &(dyn std::any::Any + Send)) -> String {
     }
 }
 
+/// faer's dense kernels split their work by the thread count and so round
+/// differently with 1 and 2 threads, which CG amplifies; nsdd's parallelism
+/// goes over subdomains, so the C ABI keeps them sequential, as the command
+/// line does: a C caller's results do not depend on `RAYON_NUM_THREADS`.
+/// Once per process, before the first call does any work.
+fn sequential_dense_kernels() {
+    static ONCE: std::sync::Once = std::sync::Once::new();
+    ONCE.call_once(|| faer::set_global_parallelism(faer::Par::Seq));
+}
+
 /// Runs one C ABI body: a returned [`Fail`] becomes its status and the
 /// thread's last-error message, and a panic becomes
 /// [`NsddStatus::Panic`]. Every exported function goes through it.
 #[doc(hidden)]
 pub fn ffi_guard<F: FnOnce() -> FfiResult>(body: F) -> NsddStatus {
+    sequential_dense_kernels();
     match catch_unwind(AssertUnwindSafe(body)) {
         Ok(Ok(())) => NsddStatus::Ok,
         Ok(Err(f)) => {
