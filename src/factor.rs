@@ -13,10 +13,10 @@
 
 use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::linalg::cholesky::llt::factor::LltRegularization;
-use faer::reborrow::ReborrowMut;
+use faer::reborrow::{Reborrow, ReborrowMut};
+use faer::sparse::linalg::cholesky::supernodal::{SupernodalLltRef, SymbolicSupernodalCholesky};
 use faer::sparse::linalg::cholesky::{
-    factorize_symbolic_cholesky, CholeskySymbolicParams, LltRef, SymbolicCholesky, SymbolicCholeskyRaw,
-    SymmetricOrdering,
+    factorize_symbolic_cholesky, CholeskySymbolicParams, SymbolicCholesky, SymbolicCholeskyRaw, SymmetricOrdering,
 };
 use faer::sparse::SparseColMat;
 use faer::{Conj, MatMut, Par, Side, Spec};
@@ -47,6 +47,9 @@ pub struct SparseCholesky {
     l_values: Vec<f64>,
     scratch: MemBuffer,
     scratch_cols: usize,
+    /// The permuted right-hand sides of a simplicial factor's solves
+    /// (`n × scratch_cols`; empty for a supernodal one).
+    perm_buf: Vec<f64>,
     ordering: OrderingKind,
     /// Parallelism of the numeric factorization (solves stay sequential).
     par: Par,
@@ -226,6 +229,7 @@ impl SparseCholesky {
                 Some(a) if Arc::ptr_eq(&a.symbolic, &symbolic) => a.pattern.clone(),
                 _ => Arc::new(pattern_of(lower)),
             },
+            perm_buf: perm_buffer(&symbolic, max_rhs),
             symbolic,
             scratch,
             scratch_cols: max_rhs,
@@ -314,6 +318,7 @@ impl SparseCholesky {
             l_values: vec![0.0; self.l_values.len()],
             scratch,
             scratch_cols: max_rhs,
+            perm_buf: perm_buffer(&self.symbolic, max_rhs),
             ordering: self.ordering,
             par: self.par,
             timings: FactorTimings::default(),
@@ -377,14 +382,118 @@ impl SparseCholesky {
 
     /// Solves `A X = B` in place for a block of columns (column major),
     /// in chunks of at most the scratch width. Allocation free.
+    ///
+    /// A simplicial factor's forward substitution skips the columns of `L`
+    /// where the right-hand sides are zero ([`forward_skipping_zeros`]):
+    /// the subdomain solves of an iteration and of the coarse set-up have
+    /// right-hand sides on the interface only. Same arithmetic, same bits
+    /// as faer's kernel.
     pub fn solve_block(&mut self, mut rhs: MatMut<'_, f64>) {
         let k = rhs.ncols();
+        let n = self.n;
         let mut j = 0;
         while j < k {
             let w = (k - j).min(self.scratch_cols);
-            let block = rhs.rb_mut().subcols_mut(j, w);
-            let llt = LltRef::<'_, usize, f64>::new(&self.symbolic, &self.l_values);
-            llt.solve_in_place_with_conj(Conj::No, block, Par::Seq, MemStack::new(&mut self.scratch));
+            let mut block = rhs.rb_mut().subcols_mut(j, w);
+            match self.symbolic.raw() {
+                SymbolicCholeskyRaw::Simplicial(sym) => {
+                    let x = &mut self.perm_buf[..n * w];
+                    let perm = self.symbolic.perm().map(|p| p.arrays());
+                    for c in 0..w {
+                        let xc = &mut x[c * n..(c + 1) * n];
+                        match perm {
+                            Some((fwd, _)) => xc.iter_mut().zip(fwd).for_each(|(d, &f)| *d = block[(f, c)]),
+                            None => xc.iter_mut().enumerate().for_each(|(i, d)| *d = block[(i, c)]),
+                        }
+                    }
+                    let f = sym.factor();
+                    forward_skipping_zeros(f.col_ptr(), f.row_idx(), &self.l_values, x, n);
+                    let l = faer::sparse::SparseColMatRef::<'_, usize, f64>::new(f, &self.l_values);
+                    faer::sparse::linalg::triangular_solve::solve_lower_triangular_transpose_in_place(
+                        l,
+                        Conj::Yes,
+                        MatMut::from_column_major_slice_mut(x, n, w),
+                        Par::Seq,
+                    );
+                    for c in 0..w {
+                        let xc = &x[c * n..(c + 1) * n];
+                        match perm {
+                            Some((_, inv)) => inv.iter().enumerate().for_each(|(i, &v)| block[(i, c)] = xc[v]),
+                            None => xc.iter().enumerate().for_each(|(i, &v)| block[(i, c)] = v),
+                        }
+                    }
+                }
+                SymbolicCholeskyRaw::Supernodal(sym) => {
+                    let (x, tmp) = self.perm_buf.split_at_mut(n * self.scratch_cols);
+                    let x = &mut x[..n * w];
+                    let perm = self.symbolic.perm().map(|p| p.arrays());
+                    for c in 0..w {
+                        let xc = &mut x[c * n..(c + 1) * n];
+                        match perm {
+                            Some((fwd, _)) => xc.iter_mut().zip(fwd).for_each(|(d, &f)| *d = block[(f, c)]),
+                            None => xc.iter_mut().enumerate().for_each(|(i, d)| *d = block[(i, c)]),
+                        }
+                    }
+                    supernodal_forward_skipping_zeros(sym, &self.l_values, x, n, w, tmp);
+                    let l = SupernodalLltRef::<'_, usize, f64>::new(sym, &self.l_values);
+                    l.l_transpose_solve_with_conj(
+                        Conj::No,
+                        MatMut::from_column_major_slice_mut(x, n, w),
+                        Par::Seq,
+                        MemStack::new(&mut self.scratch),
+                    );
+                    for c in 0..w {
+                        let xc = &x[c * n..(c + 1) * n];
+                        match perm {
+                            Some((_, inv)) => inv.iter().enumerate().for_each(|(i, &v)| block[(i, c)] = xc[v]),
+                            None => xc.iter().enumerate().for_each(|(i, &v)| block[(i, c)] = v),
+                        }
+                    }
+                }
+            }
+            j += w;
+        }
+    }
+
+    /// Forward substitution alone: replaces a column-major block `B` of
+    /// `k` columns (`n * k` values) by `W = L⁻¹ P B`, where `A = Pᵀ L Lᵀ P`.
+    /// Then `Bᵀ A⁻¹ B = Wᵀ W`: a Schur complement for half the triangular
+    /// work of full solves. Set-up only (allocates one column block).
+    pub fn forward_columns(&mut self, data: &mut [f64], k: usize) {
+        use faer::sparse::linalg::cholesky::simplicial::SimplicialLltRef;
+        let n = self.n;
+        debug_assert_eq!(data.len(), n * k);
+        let w_max = self.scratch_cols.min(k.max(1));
+        let mut x = vec![0.0; n * w_max];
+        let mut j = 0;
+        while j < k {
+            let w = (k - j).min(w_max);
+            let block = &mut data[j * n..(j + w) * n];
+            let xb = &mut x[..n * w];
+            match self.symbolic.perm() {
+                Some(perm) => {
+                    let fwd = perm.arrays().0;
+                    for c in 0..w {
+                        let (src, dst) = (&block[c * n..(c + 1) * n], &mut xb[c * n..(c + 1) * n]);
+                        for (d, &f) in dst.iter_mut().zip(fwd) {
+                            *d = src[f];
+                        }
+                    }
+                }
+                None => xb.copy_from_slice(block),
+            }
+            match self.symbolic.raw() {
+                SymbolicCholeskyRaw::Simplicial(sym) => {
+                    let l = SimplicialLltRef::<'_, usize, f64>::new(sym, &self.l_values);
+                    let f = l.symbolic().factor();
+                    forward_skipping_zeros(f.col_ptr(), f.row_idx(), l.values(), xb, n);
+                }
+                SymbolicCholeskyRaw::Supernodal(sym) => {
+                    let tmp = &mut self.perm_buf[n * self.scratch_cols..];
+                    supernodal_forward_skipping_zeros(sym, &self.l_values, xb, n, w, tmp);
+                }
+            }
+            block.copy_from_slice(xb);
             j += w;
         }
     }
@@ -397,6 +506,7 @@ impl SparseCholesky {
             let req = self.symbolic.solve_in_place_scratch::<f64>(k, Par::Seq);
             self.scratch = MemBuffer::try_new(req).map_err(|_| FactorError::Internal("out of memory".into()))?;
             self.scratch_cols = k;
+            self.perm_buf = perm_buffer(&self.symbolic, k);
         }
         Ok(())
     }
@@ -644,6 +754,131 @@ fn symbolic_cholesky(
     .map_err(|e| FactorError::Internal(format!("symbolic analysis: {e:?}")))
 }
 
+/// [`SparseCholesky::perm_buf`] for `k` columns: the permuted right-hand
+/// sides, and for a supernodal factor the products of its supernodes'
+/// off-diagonal blocks.
+fn perm_buffer(symbolic: &SymbolicCholesky<usize>, k: usize) -> Vec<f64> {
+    let k = k.max(1);
+    let extra = match symbolic.raw() {
+        SymbolicCholeskyRaw::Simplicial(_) => 0,
+        SymbolicCholeskyRaw::Supernodal(sym) => {
+            (0..sym.n_supernodes())
+                .map(|s| sym.supernode(s).pattern().len())
+                .max()
+                .unwrap_or(0)
+                * k
+        }
+    };
+    vec![0.0; symbolic.nrows() * k + extra]
+}
+
+/// `X ← L⁻¹ X` for a supernodal factor, on column-major `x` (`n × w`),
+/// as faer's `l_solve_with_conj` does it (same operations, same bits) but
+/// skipping the supernodes whose rows of `X` are all zero, which leave `X`
+/// unchanged: see [`forward_skipping_zeros`]. `tmp` holds the largest
+/// supernode pattern times `w`. No allocation.
+fn supernodal_forward_skipping_zeros(
+    sym: &SymbolicSupernodalCholesky<usize>,
+    values: &[f64],
+    x: &mut [f64],
+    n: usize,
+    w: usize,
+    tmp: &mut [f64],
+) {
+    let l = SupernodalLltRef::<'_, usize, f64>::new(sym, values);
+    for s in 0..sym.n_supernodes() {
+        let sn = l.supernode(s);
+        let ls = sn.val();
+        let (size, start) = (ls.ncols(), sn.start());
+        if (0..w).all(|c| x[c * n + start..c * n + start + size].iter().all(|&v| v == 0.0)) {
+            continue;
+        }
+        let (top, bot) = ls.split_at_row(size);
+        let pattern = sn.pattern();
+        let np = pattern.len();
+        let mut t = MatMut::from_column_major_slice_mut(&mut tmp[..np * w], np, w);
+        {
+            let mut xm = MatMut::from_column_major_slice_mut(&mut *x, n, w);
+            let mut x_top = xm.rb_mut().subrows_mut(start, size);
+            faer::linalg::triangular_solve::solve_lower_triangular_in_place_with_conj(
+                top,
+                Conj::No,
+                x_top.rb_mut(),
+                Par::Seq,
+            );
+            faer::linalg::matmul::matmul_with_conj(
+                t.rb_mut(),
+                faer::Accum::Replace,
+                bot,
+                Conj::No,
+                x_top.rb(),
+                Conj::No,
+                1.0,
+                Par::Seq,
+            );
+        }
+        for c in 0..w {
+            let xc = &mut x[c * n..(c + 1) * n];
+            for (idx, &i) in pattern.iter().enumerate() {
+                xc[i] -= t[(idx, c)];
+            }
+        }
+    }
+}
+
+/// `X ← L⁻¹ X` for a simplicial factor in CSC (diagonal first in each
+/// column), on column-major `x` with `n` rows, four columns at a time,
+/// skipping the columns of `L` where the four are zero. A Schur
+/// complement's right-hand sides are the couplings of a face to the
+/// interior: sparse, and `L⁻¹ b` is nonzero only on the rows the
+/// elimination tree reaches from them, which faer's dense-block kernel does
+/// not exploit.
+fn forward_skipping_zeros(col_ptr: &[usize], row_idx: &[usize], values: &[f64], x: &mut [f64], n: usize) {
+    if n == 0 {
+        return;
+    }
+    for group in x.chunks_mut(4 * n) {
+        let g = group.len() / n;
+        if g == 4 {
+            let (x0, rest) = group.split_at_mut(n);
+            let (x1, rest) = rest.split_at_mut(n);
+            let (x2, x3) = rest.split_at_mut(n);
+            for j in 0..n {
+                if x0[j] == 0.0 && x1[j] == 0.0 && x2[j] == 0.0 && x3[j] == 0.0 {
+                    continue;
+                }
+                let (p0, p1) = (col_ptr[j], col_ptr[j + 1]);
+                let d = values[p0].recip();
+                let (a, b, c, e) = (x0[j] * d, x1[j] * d, x2[j] * d, x3[j] * d);
+                x0[j] = a;
+                x1[j] = b;
+                x2[j] = c;
+                x3[j] = e;
+                for (&i, &l) in row_idx[p0 + 1..p1].iter().zip(&values[p0 + 1..p1]) {
+                    x0[i] -= l * a;
+                    x1[i] -= l * b;
+                    x2[i] -= l * c;
+                    x3[i] -= l * e;
+                }
+            }
+        } else {
+            for col in group.chunks_mut(n) {
+                for j in 0..n {
+                    if col[j] == 0.0 {
+                        continue;
+                    }
+                    let (p0, p1) = (col_ptr[j], col_ptr[j + 1]);
+                    let a = col[j] * values[p0].recip();
+                    col[j] = a;
+                    for (&i, &l) in row_idx[p0 + 1..p1].iter().zip(&values[p0 + 1..p1]) {
+                        col[i] -= l * a;
+                    }
+                }
+            }
+        }
+    }
+}
+
 /// Diagonal of the stored factor (of `L` for LLT, of `D` for LDLT), in the
 /// permuted order.
 fn l_diagonal(symbolic: &SymbolicCholesky<usize>, values: &[f64]) -> Vec<f64> {
@@ -774,6 +1009,7 @@ pub fn sym_matvec(lower: &SparseColMat<usize, f64>, x: &[f64], y: &mut [f64]) {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use faer::sparse::linalg::cholesky::LltRef;
 
     fn tridiagonal(n: usize, coupled: bool) -> SparseColMat<usize, f64> {
         let mut trip: Vec<(usize, usize, f64)> = (0..n).map(|i| (i, i, 4.0)).collect();
@@ -800,6 +1036,108 @@ mod tests {
         let mut x = vec![4.0; 300];
         c.solve_in_place(&mut x);
         assert!(x.iter().all(|&v| (v - 1.0).abs() < 1e-14));
+    }
+
+    /// `Wᵀ W` from the forward substitution alone equals `Bᵀ A⁻¹ B` from
+    /// full solves, on a simplicial (tridiagonal) and a supernodal (dense
+    /// block) factor, with a block wider than the solve scratch.
+    #[test]
+    fn forward_substitution_gives_the_schur_product() {
+        let dense = |m: usize| {
+            let mut trip = Vec::new();
+            for j in 0..m {
+                trip.push((j, j, 2.0 * m as f64));
+                for i in j + 1..m {
+                    trip.push((i, j, 1.0 / (1 + i + j) as f64));
+                }
+            }
+            lower_csc(m, &trip).unwrap()
+        };
+        for (a, want_supernodal) in [(tridiagonal(300, true), false), (dense(120), true)] {
+            let n = a.nrows();
+            let mut chol = SparseCholesky::factor_ordered(&a, None, 1, PIVOT_RATIO).unwrap();
+            assert_eq!(chol.is_supernodal(), want_supernodal);
+            chol.set_max_rhs(3).unwrap();
+            let k = 7;
+            let b: Vec<f64> = (0..n * k).map(|i| ((i * 37 % 101) as f64 - 50.0) / 17.0).collect();
+            let mut x = b.clone();
+            chol.solve_columns(&mut x, k);
+            let mut w = b.clone();
+            chol.forward_columns(&mut w, k);
+            for p in 0..k {
+                for q in 0..k {
+                    let full: f64 = (0..n).map(|i| b[p * n + i] * x[q * n + i]).sum();
+                    let fwd: f64 = (0..n).map(|i| w[p * n + i] * w[q * n + i]).sum();
+                    assert!(
+                        (full - fwd).abs() <= 1e-12 * full.abs().max(1.0),
+                        "{p},{q}: {full} vs {fwd}"
+                    );
+                }
+            }
+        }
+    }
+
+    /// The solves that skip zero right-hand-side rows give faer's bits, on
+    /// a simplicial and a supernodal factor, with right-hand sides that
+    /// are zero but for a few rows (as on the interface) and dense ones,
+    /// in blocks wider than 4 and than the scratch; an empty matrix too.
+    #[test]
+    fn skipping_zeros_gives_faers_bits() {
+        let lattice = |m: usize, dims: usize| {
+            // Laplacian-like pattern of an m^dims lattice with a diagonal
+            // shift: SPD; in 3D enough fill for faer to go supernodal.
+            let nz = if dims == 3 { m } else { 1 };
+            let idx = |i: usize, j: usize, l: usize| (l * m + i) * m + j;
+            let mut trip = Vec::new();
+            for l in 0..nz {
+                for i in 0..m {
+                    for j in 0..m {
+                        trip.push((idx(i, j, l), idx(i, j, l), 6.5));
+                        for (di, dj, dl) in [(1, 0, 0), (0, 1, 0), (0, 0, 1)] {
+                            if i + di < m && j + dj < m && l + dl < nz {
+                                trip.push((idx(i + di, j + dj, l + dl), idx(i, j, l), -1.0));
+                            }
+                        }
+                    }
+                }
+            }
+            lower_csc(m * m * nz, &trip).unwrap()
+        };
+        for (a, supernodal) in [(lattice(8, 2), false), (lattice(14, 3), true)] {
+            let n = a.nrows();
+            let mut chol = SparseCholesky::factor_ordered(&a, None, 1, PIVOT_RATIO).unwrap();
+            assert_eq!(chol.is_supernodal(), supernodal);
+            chol.set_max_rhs(6).unwrap();
+            let k = 9;
+            let mut b = vec![0.0; n * k];
+            for c in 0..k {
+                for r in [c, n / 2 + c, n - 1 - c] {
+                    b[c * n + r] = 1.0 + c as f64;
+                }
+            }
+            b[8 * n..].iter_mut().enumerate().for_each(|(i, v)| *v = (i % 7) as f64 - 3.0);
+            let mut ours = b.clone();
+            chol.solve_columns(&mut ours, k);
+            // faer's solve in the same blocks of columns (its dense kernels
+            // round differently with the block width).
+            let mut faers = b.clone();
+            let llt = LltRef::<'_, usize, f64>::new(&chol.symbolic, &chol.l_values);
+            let req = chol.symbolic.solve_in_place_scratch::<f64>(6, Par::Seq);
+            let mut buf = MemBuffer::new(req);
+            for (c0, w) in [(0, 6), (6, 3)] {
+                llt.solve_in_place_with_conj(
+                    Conj::No,
+                    MatMut::from_column_major_slice_mut(&mut faers[c0 * n..(c0 + w) * n], n, w),
+                    Par::Seq,
+                    MemStack::new(&mut buf),
+                );
+            }
+            assert!(ours.iter().zip(&faers).all(|(x, y)| x.to_bits() == y.to_bits()), "supernodal {supernodal}");
+        }
+        let empty = lower_csc(0, &[]).unwrap();
+        let mut chol = SparseCholesky::factor_ordered(&empty, None, 4, PIVOT_RATIO).unwrap();
+        chol.solve_columns(&mut [], 3);
+        chol.forward_columns(&mut [], 3);
     }
 
     /// A dense SPD block of order `m` (diagonally dominant) with one extra
