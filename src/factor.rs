@@ -383,11 +383,11 @@ impl SparseCholesky {
     /// Solves `A X = B` in place for a block of columns (column major),
     /// in chunks of at most the scratch width. Allocation free.
     ///
-    /// A simplicial factor's forward substitution skips the columns of `L`
-    /// where the right-hand sides are zero ([`forward_skipping_zeros`]):
-    /// the subdomain solves of an iteration and of the coarse set-up have
-    /// right-hand sides on the interface only. Same arithmetic, same bits
-    /// as faer's kernel.
+    /// The forward substitution skips the columns (simplicial) or
+    /// supernodes (supernodal) of `L` where the right-hand sides are zero
+    /// ([`forward_skipping_zeros`]): the set-up's solves have right-hand
+    /// sides on one face or the interface only. Otherwise faer's
+    /// arithmetic in faer's order: the same bits.
     pub fn solve_block(&mut self, mut rhs: MatMut<'_, f64>) {
         let k = rhs.ncols();
         let n = self.n;
@@ -395,105 +395,76 @@ impl SparseCholesky {
         while j < k {
             let w = (k - j).min(self.scratch_cols);
             let mut block = rhs.rb_mut().subcols_mut(j, w);
+            self.forward(block.rb(), w);
+            let xm = MatMut::from_column_major_slice_mut(&mut self.perm_buf[..n * w], n, w);
             match self.symbolic.raw() {
                 SymbolicCholeskyRaw::Simplicial(sym) => {
-                    let x = &mut self.perm_buf[..n * w];
-                    let perm = self.symbolic.perm().map(|p| p.arrays());
-                    for c in 0..w {
-                        let xc = &mut x[c * n..(c + 1) * n];
-                        match perm {
-                            Some((fwd, _)) => xc.iter_mut().zip(fwd).for_each(|(d, &f)| *d = block[(f, c)]),
-                            None => xc.iter_mut().enumerate().for_each(|(i, d)| *d = block[(i, c)]),
-                        }
-                    }
-                    let f = sym.factor();
-                    forward_skipping_zeros(f.col_ptr(), f.row_idx(), &self.l_values, x, n);
-                    let l = faer::sparse::SparseColMatRef::<'_, usize, f64>::new(f, &self.l_values);
+                    let l = faer::sparse::SparseColMatRef::<'_, usize, f64>::new(sym.factor(), &self.l_values);
                     faer::sparse::linalg::triangular_solve::solve_lower_triangular_transpose_in_place(
                         l,
                         Conj::Yes,
-                        MatMut::from_column_major_slice_mut(x, n, w),
+                        xm,
                         Par::Seq,
                     );
-                    for c in 0..w {
-                        let xc = &x[c * n..(c + 1) * n];
-                        match perm {
-                            Some((_, inv)) => inv.iter().enumerate().for_each(|(i, &v)| block[(i, c)] = xc[v]),
-                            None => xc.iter().enumerate().for_each(|(i, &v)| block[(i, c)] = v),
-                        }
-                    }
                 }
                 SymbolicCholeskyRaw::Supernodal(sym) => {
-                    let (x, tmp) = self.perm_buf.split_at_mut(n * self.scratch_cols);
-                    let x = &mut x[..n * w];
-                    let perm = self.symbolic.perm().map(|p| p.arrays());
-                    for c in 0..w {
-                        let xc = &mut x[c * n..(c + 1) * n];
-                        match perm {
-                            Some((fwd, _)) => xc.iter_mut().zip(fwd).for_each(|(d, &f)| *d = block[(f, c)]),
-                            None => xc.iter_mut().enumerate().for_each(|(i, d)| *d = block[(i, c)]),
-                        }
-                    }
-                    supernodal_forward_skipping_zeros(sym, &self.l_values, x, n, w, tmp);
                     let l = SupernodalLltRef::<'_, usize, f64>::new(sym, &self.l_values);
-                    l.l_transpose_solve_with_conj(
-                        Conj::No,
-                        MatMut::from_column_major_slice_mut(x, n, w),
-                        Par::Seq,
-                        MemStack::new(&mut self.scratch),
-                    );
-                    for c in 0..w {
-                        let xc = &x[c * n..(c + 1) * n];
-                        match perm {
-                            Some((_, inv)) => inv.iter().enumerate().for_each(|(i, &v)| block[(i, c)] = xc[v]),
-                            None => xc.iter().enumerate().for_each(|(i, &v)| block[(i, c)] = v),
-                        }
-                    }
+                    l.l_transpose_solve_with_conj(Conj::No, xm, Par::Seq, MemStack::new(&mut self.scratch));
+                }
+            }
+            let x = &self.perm_buf[..n * w];
+            let perm = self.symbolic.perm().map(|p| p.arrays());
+            for c in 0..w {
+                let xc = &x[c * n..(c + 1) * n];
+                match perm {
+                    Some((_, inv)) => inv.iter().enumerate().for_each(|(i, &v)| block[(i, c)] = xc[v]),
+                    None => xc.iter().enumerate().for_each(|(i, &v)| block[(i, c)] = v),
                 }
             }
             j += w;
         }
     }
 
+    /// `P B` for a block of `w ≤ scratch_cols` columns into the head of
+    /// `perm_buf`, then `L⁻¹` applied to it there, skipping the zero rows
+    /// ([`forward_skipping_zeros`], [`supernodal_forward_skipping_zeros`]).
+    /// No allocation.
+    fn forward(&mut self, block: faer::MatRef<'_, f64>, w: usize) {
+        let n = self.n;
+        let (x, tmp) = self.perm_buf.split_at_mut(n * self.scratch_cols);
+        let x = &mut x[..n * w];
+        let perm = self.symbolic.perm().map(|p| p.arrays());
+        for c in 0..w {
+            let xc = &mut x[c * n..(c + 1) * n];
+            match perm {
+                Some((fwd, _)) => xc.iter_mut().zip(fwd).for_each(|(d, &f)| *d = block[(f, c)]),
+                None => xc.iter_mut().enumerate().for_each(|(i, d)| *d = block[(i, c)]),
+            }
+        }
+        match self.symbolic.raw() {
+            SymbolicCholeskyRaw::Simplicial(sym) => {
+                let f = sym.factor();
+                forward_skipping_zeros(f.col_ptr(), f.row_idx(), &self.l_values, x, n);
+            }
+            SymbolicCholeskyRaw::Supernodal(sym) => {
+                supernodal_forward_skipping_zeros(sym, &self.l_values, x, n, w, tmp);
+            }
+        }
+    }
+
     /// Forward substitution alone: replaces a column-major block `B` of
     /// `k` columns (`n * k` values) by `W = L⁻¹ P B`, where `A = Pᵀ L Lᵀ P`.
     /// Then `Bᵀ A⁻¹ B = Wᵀ W`: a Schur complement for half the triangular
-    /// work of full solves. Set-up only (allocates one column block).
+    /// work of full solves. No allocation.
     pub fn forward_columns(&mut self, data: &mut [f64], k: usize) {
-        use faer::sparse::linalg::cholesky::simplicial::SimplicialLltRef;
         let n = self.n;
         debug_assert_eq!(data.len(), n * k);
-        let w_max = self.scratch_cols.min(k.max(1));
-        let mut x = vec![0.0; n * w_max];
         let mut j = 0;
         while j < k {
-            let w = (k - j).min(w_max);
+            let w = (k - j).min(self.scratch_cols);
             let block = &mut data[j * n..(j + w) * n];
-            let xb = &mut x[..n * w];
-            match self.symbolic.perm() {
-                Some(perm) => {
-                    let fwd = perm.arrays().0;
-                    for c in 0..w {
-                        let (src, dst) = (&block[c * n..(c + 1) * n], &mut xb[c * n..(c + 1) * n]);
-                        for (d, &f) in dst.iter_mut().zip(fwd) {
-                            *d = src[f];
-                        }
-                    }
-                }
-                None => xb.copy_from_slice(block),
-            }
-            match self.symbolic.raw() {
-                SymbolicCholeskyRaw::Simplicial(sym) => {
-                    let l = SimplicialLltRef::<'_, usize, f64>::new(sym, &self.l_values);
-                    let f = l.symbolic().factor();
-                    forward_skipping_zeros(f.col_ptr(), f.row_idx(), l.values(), xb, n);
-                }
-                SymbolicCholeskyRaw::Supernodal(sym) => {
-                    let tmp = &mut self.perm_buf[n * self.scratch_cols..];
-                    supernodal_forward_skipping_zeros(sym, &self.l_values, xb, n, w, tmp);
-                }
-            }
-            block.copy_from_slice(xb);
+            self.forward(faer::MatRef::from_column_major_slice(block, n, w), w);
+            block.copy_from_slice(&self.perm_buf[..n * w]);
             j += w;
         }
     }
@@ -1115,7 +1086,10 @@ mod tests {
                     b[c * n + r] = 1.0 + c as f64;
                 }
             }
-            b[8 * n..].iter_mut().enumerate().for_each(|(i, v)| *v = (i % 7) as f64 - 3.0);
+            b[8 * n..]
+                .iter_mut()
+                .enumerate()
+                .for_each(|(i, v)| *v = (i % 7) as f64 - 3.0);
             let mut ours = b.clone();
             chol.solve_columns(&mut ours, k);
             // faer's solve in the same blocks of columns (its dense kernels
@@ -1132,7 +1106,10 @@ mod tests {
                     MemStack::new(&mut buf),
                 );
             }
-            assert!(ours.iter().zip(&faers).all(|(x, y)| x.to_bits() == y.to_bits()), "supernodal {supernodal}");
+            assert!(
+                ours.iter().zip(&faers).all(|(x, y)| x.to_bits() == y.to_bits()),
+                "supernodal {supernodal}"
+            );
         }
         let empty = lower_csc(0, &[]).unwrap();
         let mut chol = SparseCholesky::factor_ordered(&empty, None, 4, PIVOT_RATIO).unwrap();
