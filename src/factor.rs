@@ -47,8 +47,9 @@ pub struct SparseCholesky {
     l_values: Vec<f64>,
     scratch: MemBuffer,
     scratch_cols: usize,
-    /// The permuted right-hand sides of a simplicial factor's solves
-    /// (`n × scratch_cols`; empty for a supernodal one).
+    /// The permuted right-hand sides of the solves (`n × scratch_cols`),
+    /// then for a supernodal factor the products of its supernodes'
+    /// off-diagonal blocks in the forward substitution ([`perm_buffer`]).
     perm_buf: Vec<f64>,
     ordering: OrderingKind,
     /// Parallelism of the numeric factorization (solves stay sequential).
