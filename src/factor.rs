@@ -397,22 +397,7 @@ impl SparseCholesky {
             let w = (k - j).min(self.scratch_cols);
             let mut block = rhs.rb_mut().subcols_mut(j, w);
             self.forward(block.rb(), w);
-            let xm = MatMut::from_column_major_slice_mut(&mut self.perm_buf[..n * w], n, w);
-            match self.symbolic.raw() {
-                SymbolicCholeskyRaw::Simplicial(sym) => {
-                    let l = faer::sparse::SparseColMatRef::<'_, usize, f64>::new(sym.factor(), &self.l_values);
-                    faer::sparse::linalg::triangular_solve::solve_lower_triangular_transpose_in_place(
-                        l,
-                        Conj::Yes,
-                        xm,
-                        Par::Seq,
-                    );
-                }
-                SymbolicCholeskyRaw::Supernodal(sym) => {
-                    let l = SupernodalLltRef::<'_, usize, f64>::new(sym, &self.l_values);
-                    l.l_transpose_solve_with_conj(Conj::No, xm, Par::Seq, MemStack::new(&mut self.scratch));
-                }
-            }
+            self.backward_in_perm_buf(w);
             let x = &self.perm_buf[..n * w];
             let perm = self.symbolic.perm().map(|p| p.arrays());
             for c in 0..w {
@@ -421,6 +406,55 @@ impl SparseCholesky {
                     Some((_, inv)) => inv.iter().enumerate().for_each(|(i, &v)| block[(i, c)] = xc[v]),
                     None => xc.iter().enumerate().for_each(|(i, &v)| block[(i, c)] = v),
                 }
+            }
+            j += w;
+        }
+    }
+
+    /// `L⁻ᵀ` (faer's backward substitution) on the first `w` columns of
+    /// `perm_buf`, which hold forward-substituted values in the permuted
+    /// order.
+    fn backward_in_perm_buf(&mut self, w: usize) {
+        let n = self.n;
+        let xm = MatMut::from_column_major_slice_mut(&mut self.perm_buf[..n * w], n, w);
+        match self.symbolic.raw() {
+            SymbolicCholeskyRaw::Simplicial(sym) => {
+                let l = faer::sparse::SparseColMatRef::<'_, usize, f64>::new(sym.factor(), &self.l_values);
+                faer::sparse::linalg::triangular_solve::solve_lower_triangular_transpose_in_place(
+                    l,
+                    Conj::Yes,
+                    xm,
+                    Par::Seq,
+                );
+            }
+            SymbolicCholeskyRaw::Supernodal(sym) => {
+                let l = SupernodalLltRef::<'_, usize, f64>::new(sym, &self.l_values);
+                l.l_transpose_solve_with_conj(Conj::No, xm, Par::Seq, MemStack::new(&mut self.scratch));
+            }
+        }
+    }
+
+    /// Finishes solves begun by [`SparseCholesky::forward_columns`]: `data`
+    /// holds `W = L⁻¹ P B` (`k` columns, column-major) and is replaced by
+    /// `A⁻¹ B = Pᵀ L⁻ᵀ W`, the same bits as [`SparseCholesky::solve_columns`]
+    /// on `B`. No allocation.
+    pub fn backward_columns(&mut self, data: &mut [f64], k: usize) {
+        let n = self.n;
+        debug_assert_eq!(data.len(), n * k);
+        let mut j = 0;
+        while j < k {
+            let w = (k - j).min(self.scratch_cols);
+            let block = &mut data[j * n..(j + w) * n];
+            self.perm_buf[..n * w].copy_from_slice(block);
+            self.backward_in_perm_buf(w);
+            let x = &self.perm_buf[..n * w];
+            match self.symbolic.perm().map(|p| p.arrays()) {
+                Some((_, inv)) => {
+                    for (bc, xc) in block.chunks_mut(n).zip(x.chunks(n)) {
+                        bc.iter_mut().zip(inv).for_each(|(d, &v)| *d = xc[v]);
+                    }
+                }
+                None => block.copy_from_slice(x),
             }
             j += w;
         }
@@ -437,9 +471,15 @@ impl SparseCholesky {
         let perm = self.symbolic.perm().map(|p| p.arrays());
         for c in 0..w {
             let xc = &mut x[c * n..(c + 1) * n];
-            match perm {
-                Some((fwd, _)) => xc.iter_mut().zip(fwd).for_each(|(d, &f)| *d = block[(f, c)]),
-                None => xc.iter_mut().enumerate().for_each(|(i, d)| *d = block[(i, c)]),
+            let col = block.col(c);
+            match (perm, col.try_as_col_major()) {
+                (Some((fwd, _)), Some(bc)) => {
+                    let bc = bc.as_slice();
+                    xc.iter_mut().zip(fwd).for_each(|(d, &f)| *d = bc[f]);
+                }
+                (None, Some(bc)) => xc.copy_from_slice(bc.as_slice()),
+                (Some((fwd, _)), None) => xc.iter_mut().zip(fwd).for_each(|(d, &f)| *d = col[f]),
+                (None, None) => xc.iter_mut().enumerate().for_each(|(i, d)| *d = col[i]),
             }
         }
         match self.symbolic.raw() {
@@ -789,10 +829,14 @@ fn supernodal_forward_skipping_zeros(
                 Par::Seq,
             );
         }
-        for c in 0..w {
-            let xc = &mut x[c * n..(c + 1) * n];
-            for (idx, &i) in pattern.iter().enumerate() {
-                xc[i] -= t[(idx, c)];
+        if np == 0 {
+            continue;
+        }
+        for (xc, tc) in x.chunks_mut(n).zip(tmp[..np * w].chunks(np)) {
+            for (&i, &v) in pattern.iter().zip(tc) {
+                // SAFETY: supernode patterns hold row indices below n
+                // (faer's symbolic invariant) and xc has n values.
+                unsafe { *xc.get_unchecked_mut(i) -= v };
             }
         }
     }
@@ -965,16 +1009,92 @@ pub fn lower_diagonal(lower: &SparseColMat<usize, f64>) -> Vec<f64> {
 }
 
 /// `y = A x` for the symmetric matrix whose lower triangle is `lower`.
+///
+/// Each column is read once: its off-diagonal entries scatter `A_ij x_j`
+/// into `y_i` and gather `A_ij x_i` into a register for `y_j`, so `y_j` is
+/// not a memory dependency chain (the preconditioner's `K_bb x` and the
+/// kernel tests run this).
 pub fn sym_matvec(lower: &SparseColMat<usize, f64>, x: &[f64], y: &mut [f64]) {
     let a = lower.as_ref();
-    y.iter_mut().for_each(|v| *v = 0.0);
-    for j in 0..a.ncols() {
-        for (i, &v) in a.row_idx_of_col(j).zip(a.val_of_col(j)) {
-            y[i] += v * x[j];
-            if i != j {
-                y[j] += v * x[i];
+    let n = a.ncols();
+    assert!(
+        x.len() >= n && y.len() >= n,
+        "sym_matvec: vectors shorter than the matrix"
+    );
+    y[..n].iter_mut().for_each(|v| *v = 0.0);
+    for j in 0..n {
+        let xj = x[j];
+        let mut acc = 0.0;
+        for (&i, &v) in a.row_idx_of_col_raw(j).iter().zip(a.val_of_col(j)) {
+            if i == j {
+                acc += v * xj;
+                continue;
+            }
+            // SAFETY: a SparseColMat's row indices are below nrows() = n
+            // (faer's invariant), and x, y hold at least n values.
+            unsafe {
+                *y.get_unchecked_mut(i) += v * xj;
+                acc += v * *x.get_unchecked(i);
             }
         }
+        y[j] += acc;
+    }
+}
+
+/// `Y = A X` for `k` columns stored column-major (`n × k`) in `x` and `y`,
+/// four columns per pass over the matrix (the set-up's kernel tests apply
+/// the stiffness to tens of columns at once).
+pub fn sym_matmat(lower: &SparseColMat<usize, f64>, x: &[f64], y: &mut [f64], k: usize) {
+    let a = lower.as_ref();
+    let n = a.ncols();
+    assert!(
+        x.len() >= n * k && y.len() >= n * k,
+        "sym_matmat: blocks shorter than n × k"
+    );
+    let mut c = 0;
+    while c + 4 <= k {
+        let xs = &x[c * n..(c + 4) * n];
+        let (x0, rest) = xs.split_at(n);
+        let (x1, rest) = rest.split_at(n);
+        let (x2, x3) = rest.split_at(n);
+        let ys = &mut y[c * n..(c + 4) * n];
+        ys.iter_mut().for_each(|v| *v = 0.0);
+        let (y0, rest) = ys.split_at_mut(n);
+        let (y1, rest) = rest.split_at_mut(n);
+        let (y2, y3) = rest.split_at_mut(n);
+        for j in 0..n {
+            let (xj0, xj1, xj2, xj3) = (x0[j], x1[j], x2[j], x3[j]);
+            let (mut a0, mut a1, mut a2, mut a3) = (0.0, 0.0, 0.0, 0.0);
+            for (&i, &v) in a.row_idx_of_col_raw(j).iter().zip(a.val_of_col(j)) {
+                if i == j {
+                    a0 += v * xj0;
+                    a1 += v * xj1;
+                    a2 += v * xj2;
+                    a3 += v * xj3;
+                    continue;
+                }
+                // SAFETY: row indices are below n (faer's invariant) and
+                // every column slice holds n values.
+                unsafe {
+                    *y0.get_unchecked_mut(i) += v * xj0;
+                    *y1.get_unchecked_mut(i) += v * xj1;
+                    *y2.get_unchecked_mut(i) += v * xj2;
+                    *y3.get_unchecked_mut(i) += v * xj3;
+                    a0 += v * *x0.get_unchecked(i);
+                    a1 += v * *x1.get_unchecked(i);
+                    a2 += v * *x2.get_unchecked(i);
+                    a3 += v * *x3.get_unchecked(i);
+                }
+            }
+            y0[j] += a0;
+            y1[j] += a1;
+            y2[j] += a2;
+            y3[j] += a3;
+        }
+        c += 4;
+    }
+    for c in c..k {
+        sym_matvec(lower, &x[c * n..(c + 1) * n], &mut y[c * n..(c + 1) * n]);
     }
 }
 
@@ -1111,6 +1231,41 @@ mod tests {
                 ours.iter().zip(&faers).all(|(x, y)| x.to_bits() == y.to_bits()),
                 "supernodal {supernodal}"
             );
+            // Forward, then backward on the kept result: the same bits.
+            let mut split = b.clone();
+            chol.forward_columns(&mut split, k);
+            chol.backward_columns(&mut split, k);
+            assert!(
+                split.iter().zip(&ours).all(|(x, y)| x.to_bits() == y.to_bits()),
+                "split solve, supernodal {supernodal}"
+            );
+            // The symmetric products against a dense product.
+            let dense = faer::Mat::from_fn(n, n, |i, j| {
+                let (r, c) = (i.max(j), i.min(j));
+                a.as_ref()
+                    .row_idx_of_col(c)
+                    .zip(a.as_ref().val_of_col(c))
+                    .filter(|&(row, _)| row == r)
+                    .map(|(_, &v)| v)
+                    .sum::<f64>()
+            });
+            let mut y = vec![0.0; n * k];
+            sym_matmat(&a, &b, &mut y, k);
+            let mut yv = vec![0.0; n];
+            for c in 0..k {
+                sym_matvec(&a, &b[c * n..(c + 1) * n], &mut yv);
+                for i in 0..n {
+                    let want: f64 = (0..n).map(|j| dense[(i, j)] * b[c * n + j]).sum();
+                    assert!(
+                        (y[c * n + i] - want).abs() <= 1e-12 * want.abs().max(1.0),
+                        "sym_matmat ({i}, {c})"
+                    );
+                    assert!(
+                        (yv[i] - want).abs() <= 1e-12 * want.abs().max(1.0),
+                        "sym_matvec ({i}, {c})"
+                    );
+                }
+            }
         }
         let empty = lower_csc(0, &[]).unwrap();
         let mut chol = SparseCholesky::factor_ordered(&empty, None, 4, PIVOT_RATIO).unwrap();

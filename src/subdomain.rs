@@ -15,8 +15,8 @@
 use crate::decomposition::SubdomainDofs;
 use crate::error::{Error, Result};
 use crate::factor::{
-    lower_csc, lower_diagonal, scan_pivots, sym_matvec, EliminationOrder, FactorError, OrderingChoice, OrderingKind,
-    SparseCholesky, ND_MIN_ROWS,
+    lower_csc, lower_diagonal, scan_pivots, sym_matmat, sym_matvec, EliminationOrder, FactorError, OrderingChoice,
+    OrderingKind, SparseCholesky, ND_MIN_ROWS,
 };
 use crate::kernels;
 use crate::model::Model;
@@ -303,10 +303,14 @@ impl SubdomainOperator {
             });
         }
         // A posteriori: every kernel vector must satisfy K r ≈ 0.
-        let mut kr = vec![0.0; n];
+        let qc: Vec<f64> = (0..q.ncols())
+            .flat_map(|j| (0..n).map(move |i| (j, i)))
+            .map(|(j, i)| q[(i, j)])
+            .collect();
+        let mut kq = vec![0.0; qc.len()];
+        sym_matmat(&op.stiffness, &qc, &mut kq, q.ncols());
         for j in 0..q.ncols() {
-            let col: Vec<f64> = (0..n).map(|i| q[(i, j)]).collect();
-            sym_matvec(&op.stiffness, &col, &mut kr);
+            let (col, kr) = (&qc[j * n..(j + 1) * n], &kq[j * n..(j + 1) * n]);
             let res = kr.iter().map(|v| v * v).sum::<f64>().sqrt() / scale;
             if !(res < KERNEL_TOL) {
                 let worst = (0..n).fold(0, |b, i| if col[i].abs() > col[b].abs() { i } else { b });
@@ -326,14 +330,12 @@ impl SubdomainOperator {
         let n = self.n();
         let r = self.fixing.len();
         let mut cols = vec![0.0; n * r];
-        let mut unit = vec![0.0; n];
+        let mut units = vec![0.0; n * r];
         for (j, &f) in self.fixing.iter().enumerate() {
-            unit[f] = 1.0;
-            let col = &mut cols[j * n..(j + 1) * n];
-            sym_matvec(&self.stiffness, &unit, col);
-            unit[f] = 0.0;
-            col.iter_mut().for_each(|v| *v = -*v);
+            units[j * n + f] = 1.0;
         }
+        sym_matmat(&self.stiffness, &units, &mut cols, r);
+        cols.iter_mut().for_each(|v| *v = -*v);
         self.solve_columns(&mut cols, r);
         for (j, &f) in self.fixing.iter().enumerate() {
             cols[j * n + f] = 1.0;
@@ -347,10 +349,8 @@ impl SubdomainOperator {
         // mechanism, the soft stiffness otherwise.
         let mut res = vec![0.0; n * r];
         for _ in 0..2 {
-            for j in 0..r {
-                sym_matvec(&self.stiffness, &cols[j * n..(j + 1) * n], &mut res[j * n..(j + 1) * n]);
-                res[j * n..(j + 1) * n].iter_mut().for_each(|v| *v = -*v);
-            }
+            sym_matmat(&self.stiffness, &cols, &mut res, r);
+            res.iter_mut().for_each(|v| *v = -*v);
             self.solve_columns(&mut res, r);
             for (c, &d) in cols.iter_mut().zip(&res) {
                 *c += d;
@@ -444,15 +444,10 @@ fn mechanism_dofs_by_span(
     let norms: Vec<f64> = (0..m)
         .map(|j| kernels::norm2(&cols[j * n..(j + 1) * n]).sqrt())
         .collect();
-    let mut kb = vec![0.0; n];
-    let mut s = Mat::<f64>::zeros(m, m);
-    for j in 0..m {
-        let b: Vec<f64> = cols[j * n..(j + 1) * n].iter().map(|v| v / norms[j]).collect();
-        sym_matvec(stiffness, &b, &mut kb);
-        for i in 0..m {
-            s[(i, j)] = kb[fixing[i]] / norms[i];
-        }
-    }
+    let b: Vec<f64> = (0..m * n).map(|p| cols[p] / norms[p / n]).collect();
+    let mut kb = vec![0.0; m * n];
+    sym_matmat(stiffness, &b, &mut kb, m);
+    let s = Mat::from_fn(m, m, |i, j| kb[j * n + fixing[i]] / norms[i]);
     let g = Mat::from_fn(m, m, |i, j| {
         let (a, b) = (&cols[i * n..(i + 1) * n], &cols[j * n..(j + 1) * n]);
         a.iter().zip(b).map(|(x, y)| x * y).sum::<f64>() / (norms[i] * norms[j])
@@ -523,13 +518,18 @@ fn mechanism_dofs_by_column(
     scale: f64,
 ) -> Vec<usize> {
     let n = stiffness.nrows();
-    let mut kr = vec![0.0; n];
+    // Chunks bound the scratch: this path serves more suspects than the span test.
+    const CHUNK: usize = 32;
+    let mut kc = vec![0.0; n * CHUNK];
     let mut keep = Vec::new();
-    for (j, &f) in fixing.iter().enumerate() {
-        let col = &cols[j * n..(j + 1) * n];
-        sym_matvec(stiffness, col, &mut kr);
-        if kernels::norm2(&kr).sqrt() <= MECHANISM_TOL * scale * kernels::norm2(col).sqrt() {
-            keep.push(f);
+    for (c, chunk) in fixing.chunks(CHUNK).enumerate() {
+        let (j0, k) = (c * CHUNK, chunk.len());
+        sym_matmat(stiffness, &cols[j0 * n..(j0 + k) * n], &mut kc[..k * n], k);
+        for (t, &f) in chunk.iter().enumerate() {
+            let (col, kr) = (&cols[(j0 + t) * n..(j0 + t + 1) * n], &kc[t * n..(t + 1) * n]);
+            if kernels::norm2(kr).sqrt() <= MECHANISM_TOL * scale * kernels::norm2(col).sqrt() {
+                keep.push(f);
+            }
         }
     }
     keep
@@ -606,6 +606,10 @@ pub struct InteriorProblem {
     /// `None` when every dof is on the interface (`S_E = K_E`).
     chol: Option<SparseCholesky>,
     rhs: Vec<f64>,
+    /// `W = L⁻¹ P K_IF` of [`InteriorProblem::schur_block`], kept between
+    /// the faces of one set-up: a fresh block of tens of MB per face cost
+    /// page faults and TLB shootdowns at every free.
+    face_scratch: Vec<f64>,
 }
 
 impl std::fmt::Debug for InteriorProblem {
@@ -652,6 +656,7 @@ impl InteriorProblem {
                 interior,
                 chol: None,
                 rhs: Vec::new(),
+                face_scratch: Vec::new(),
             });
         }
         let lower = lower_csc(ni, &triplets).map_err(|e| Error::Numerical(format!("subdomain {}: {e:?}", op.id)))?;
@@ -681,6 +686,7 @@ impl InteriorProblem {
             interior,
             chol: Some(chol),
             rhs: vec![0.0; ni],
+            face_scratch: Vec::new(),
         })
     }
 
@@ -706,6 +712,12 @@ impl InteriorProblem {
         }
     }
 
+    /// Frees the scratch [`InteriorProblem::schur_block`] keeps between
+    /// faces (call once the face blocks are made).
+    pub fn release_face_scratch(&mut self) {
+        self.face_scratch = Vec::new();
+    }
+
     /// Stored entries of the interior factor.
     pub fn nnz_l(&self) -> usize {
         self.chol.as_ref().map_or(0, |c| c.nnz_l())
@@ -719,8 +731,17 @@ impl InteriorProblem {
     /// `Wᵀ W` where that is cheaper (up to [`SCHUR_FORWARD_ENTRIES`]), full
     /// solves otherwise. Set-up only (allocates).
     pub fn schur_block(&mut self, op: &SubdomainOperator, rows: &[u32]) -> Result<Mat<f64>> {
+        self.schur_block_with(op, rows, SCHUR_PRODUCT_RATIO)
+    }
+
+    /// [`InteriorProblem::schur_block`] with the product's threshold given
+    /// (tests take each branch).
+    fn schur_block_with(&mut self, op: &SubdomainOperator, rows: &[u32], product_ratio: usize) -> Result<Mat<f64>> {
         let n = op.n();
         let nf = rows.len();
+        if nf == 0 {
+            return Ok(Mat::zeros(0, 0));
+        }
         let mut fpos = vec![u32::MAX; n];
         for (k, &l) in rows.iter().enumerate() {
             fpos[l as usize] = k as u32;
@@ -759,24 +780,50 @@ impl InteriorProblem {
         let width = SCHUR_BLOCK_RHS.min(nf.max(1));
         let internal = |e: FactorError| Error::Numerical(format!("subdomain {}: {e:?}", op.id));
         chol.set_max_rhs(width).map_err(internal)?;
-        // Wᵀ W costs ni·nf² in a dense product against nf·nnz(L) more in
-        // backward substitutions: the product wins while ni·nf is at most
-        // about 2 nnz(L) (faces of 2D grids, ratio 1.2–1.7: 65² nonsmooth
-        // grid 5.2 → 4.5 s); a 3D face (30³ tower, ratio up to 4.6) is
-        // cheaper by full solves (set-up 5.8 → 4.4 s against 6.0).
-        let by_product = ni * nf <= SCHUR_FORWARD_ENTRIES && ni * nf <= 2 * chol.nnz_l();
-        if by_product {
-            // S −= Wᵀ W with W = L⁻¹ P K_IF: forward substitutions only,
-            // and one dense product.
-            let mut w = vec![0.0; ni * nf];
+        if ni * nf <= SCHUR_FORWARD_ENTRIES {
+            // W = L⁻¹ P K_IF by forward substitutions, which skip the rows
+            // of L the face does not reach; W is zero off the reached rows.
+            let mut w = std::mem::take(&mut self.face_scratch);
+            w.clear();
+            w.resize(ni * nf, 0.0);
             for (c, col) in kif.iter().enumerate() {
                 for &(i, v) in col {
                     w[c * ni + i as usize] += v;
                 }
             }
             chol.forward_columns(&mut w, nf);
-            let w = faer::MatRef::from_column_major_slice(&w, ni, nf);
-            faer::linalg::matmul::matmul(s.as_mut(), faer::Accum::Add, w.transpose(), w, -1.0, faer::Par::Seq);
+            let mut reached = vec![false; ni];
+            for col in w.chunks(ni) {
+                for (r, &v) in reached.iter_mut().zip(col) {
+                    *r |= v != 0.0;
+                }
+            }
+            let rows_w: Vec<usize> = (0..ni).filter(|&r| reached[r]).collect();
+            // Then either S −= Wᵀ W over the reached rows (a dense product,
+            // nz·nf² multiply-adds) or the backward substitutions and the
+            // sparse product K_FI X (≈ 2 nnz(L)·nf at the triangular
+            // solve's lower speed): see SCHUR_PRODUCT_RATIO.
+            if rows_w.len() * nf <= product_ratio.saturating_mul(chol.nnz_l()) {
+                // Compact the reached rows in place (each value moves to a
+                // lower index, column by column).
+                let nz = rows_w.len();
+                for c in 0..nf {
+                    for (k, &r) in rows_w.iter().enumerate() {
+                        w[c * nz + k] = w[c * ni + r];
+                    }
+                }
+                let wc = faer::MatRef::from_column_major_slice(&w[..nz * nf], nz, nf);
+                faer::linalg::matmul::matmul(s.as_mut(), faer::Accum::Add, wc.transpose(), wc, -1.0, faer::Par::Seq);
+            } else {
+                chol.backward_columns(&mut w, nf);
+                for (a, col) in kif.iter().enumerate() {
+                    for (c, xc) in w.chunks(ni).enumerate() {
+                        let dot: f64 = col.iter().map(|&(i, v)| v * xc[i as usize]).sum();
+                        s[(a, c)] -= dot;
+                    }
+                }
+            }
+            self.face_scratch = w;
         } else {
             let mut x = vec![0.0; ni * width];
             for c0 in (0..nf).step_by(width) {
@@ -802,6 +849,11 @@ impl InteriorProblem {
         Ok(s)
     }
 }
+
+/// [`InteriorProblem::schur_block`] forms `Wᵀ W` over the `nz` rows its
+/// face reaches when `nz·nf` is at most this many times `nnz(L)`, and
+/// finishes the solves by backward substitution otherwise.
+pub const SCHUR_PRODUCT_RATIO: usize = 2;
 
 /// Columns per batched interior solve of [`InteriorProblem::schur_block`].
 pub const SCHUR_BLOCK_RHS: usize = 32;
@@ -841,4 +893,66 @@ pub fn orthonormal_columns(a: &Mat<f64>, rtol: f64) -> Mat<f64> {
     let smax = (0..k).map(|i| s[i]).fold(0.0f64, f64::max);
     let rank = (0..k).filter(|&i| s[i] > rtol * smax).count();
     Mat::from_fn(n, rank, |i, j| u[(i, j)])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `schur_block` equals the dense `K_FF − K_FI K_II⁻¹ K_IF` by both of
+    /// its routes (the product over the reached rows of `W`, and the
+    /// backward substitutions), on a 3D lattice whose interior factor is
+    /// supernodal and a 2D one whose factor is simplicial.
+    #[test]
+    fn schur_block_equals_the_dense_schur_complement_by_both_routes() {
+        for (m, depth) in [(14, 14), (14, 1)] {
+            let idx = |i: usize, j: usize, l: usize| (l * m + i) * m + j;
+            let n = m * m * depth;
+            let mut trip = Vec::new();
+            for l in 0..depth {
+                for i in 0..m {
+                    for j in 0..m {
+                        trip.push((idx(i, j, l), idx(i, j, l), 6.5));
+                        for (di, dj, dl) in [(1, 0, 0), (0, 1, 0), (0, 0, 1)] {
+                            if i + di < m && j + dj < m && l + dl < depth {
+                                trip.push((idx(i + di, j + dj, l + dl), idx(i, j, l), -1.0));
+                            }
+                        }
+                    }
+                }
+            }
+            let lower = lower_csc(n, &trip).unwrap();
+            let mut dense = Mat::<f64>::zeros(n, n);
+            for &(r, c, v) in &trip {
+                dense[(r, c)] += v;
+                if r != c {
+                    dense[(c, r)] += v;
+                }
+            }
+            let op = SubdomainOperator::from_matrix(0, lower, 1, None, None, &|l| format!("dof {l}")).unwrap();
+            // Interface: the first and last layers (3D), or rows (2D).
+            let on_face = |p: usize| if depth > 1 { p < m * m } else { p % m == 0 };
+            let on_other = |p: usize| if depth > 1 { p >= n - m * m } else { p % m == m - 1 };
+            let face: Vec<u32> = (0..n as u32).filter(|&p| on_face(p as usize)).collect();
+            let boundary: Vec<u32> = (0..n as u32)
+                .filter(|&p| on_face(p as usize) || on_other(p as usize))
+                .collect();
+            let interior: Vec<usize> = (0..n).filter(|&p| !on_face(p) && !on_other(p)).collect();
+            let f: Vec<usize> = face.iter().map(|&p| p as usize).collect();
+            let pick =
+                |rows: &[usize], cols: &[usize]| Mat::from_fn(rows.len(), cols.len(), |i, j| dense[(rows[i], cols[j])]);
+            let (kff, kfi, kii) = (pick(&f, &f), pick(&f, &interior), pick(&interior, &interior));
+            use faer::linalg::solvers::Solve;
+            let want = &kff - &kfi * kii.llt(faer::Side::Lower).unwrap().solve(kfi.transpose());
+            let mut ip = InteriorProblem::new(&op, &boundary).unwrap();
+            assert_eq!(ip.chol.as_ref().unwrap().is_supernodal(), depth > 1);
+            for ratio in [0, 1 << 20] {
+                let got = ip.schur_block_with(&op, &face, ratio).unwrap();
+                let err = (&got - &want).norm_max() / want.norm_max();
+                assert!(err < 1e-13, "m {m} depth {depth} ratio {ratio}: {err:e}");
+            }
+            ip.release_face_scratch();
+            assert!(ip.schur_block(&op, &[]).unwrap().nrows() == 0);
+        }
+    }
 }

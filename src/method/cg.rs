@@ -454,7 +454,8 @@ impl DdSolver {
             .map(|s| {
                 let n = s.op.n();
                 let (mut x, mut y) = (vec![0.0; n], vec![0.0; n]);
-                s.ifaces
+                let blocks = s
+                    .ifaces
                     .iter()
                     .map(|&(i, is_lo)| {
                         let it = &ifaces[i];
@@ -479,7 +480,11 @@ impl DdSolver {
                         }
                         b
                     })
-                    .collect()
+                    .collect();
+                if let Some(ip) = s.interior.as_mut() {
+                    ip.release_face_scratch();
+                }
+                blocks
             })
             .collect();
         let mut side: Vec<[Option<&Mat<f64>>; 2]> = vec![[None, None]; self.op.ifaces.len()];
