@@ -551,6 +551,10 @@ pub struct EliminationOrder {
     fwd: Vec<usize>,
     inv: Vec<usize>,
     kind: OrderingKind,
+    /// Multiple of faer's supernodal test the analyses in this order use:
+    /// [`SET_UP_SUPERNODAL_THRESHOLD`] for the subdomain factors of the DD
+    /// set-up, faer's own (1) otherwise.
+    supernodal: f64,
     /// The symbolic analysis the choice was made with, and the pattern it
     /// is for: every factorization of that pattern in this order (a
     /// singular subdomain's pivot scan and refactorizations) shares it
@@ -598,6 +602,17 @@ impl EliminationOrder {
         Ok(Self::choose(lower, Some(rank), choice)?.0)
     }
 
+    /// [`EliminationOrder::best_in_reference`] for a subdomain factor of the
+    /// DD set-up (`rank = None`: as numbered): its analyses take the
+    /// supernodal layout from [`SET_UP_SUPERNODAL_THRESHOLD`] on.
+    pub fn for_set_up(
+        lower: &SparseColMat<usize, f64>,
+        rank: Option<&[usize]>,
+        choice: OrderingChoice,
+    ) -> Result<Self, FactorError> {
+        Ok(Self::choose_with(lower, rank, choice, SET_UP_SUPERNODAL_THRESHOLD)?.0)
+    }
+
     /// The ordering used for the factorization.
     pub fn kind(&self) -> OrderingKind {
         self.kind
@@ -610,20 +625,30 @@ impl EliminationOrder {
         rank: Option<&[usize]>,
         choice: OrderingChoice,
     ) -> Result<(Self, Arc<SymbolicCholesky<usize>>), FactorError> {
+        Self::choose_with(lower, rank, choice, 1.0)
+    }
+
+    fn choose_with(
+        lower: &SparseColMat<usize, f64>,
+        rank: Option<&[usize]>,
+        choice: OrderingChoice,
+        supernodal: f64,
+    ) -> Result<(Self, Arc<SymbolicCholesky<usize>>), FactorError> {
         let n = lower.nrows();
+        let with = |o: Self| Self { supernodal, ..o };
         if choice == OrderingChoice::NestedDissection {
-            let nd = Self::nd(lower, rank)?;
+            let nd = with(Self::nd(lower, rank)?);
             let sym = symbolic_cholesky(lower, Some(&nd))?;
             return Ok(nd.with_analysis(lower, sym));
         }
-        let amd = Self::amd(lower, rank)?;
+        let amd = with(Self::amd(lower, rank)?);
         let amd_sym = symbolic_cholesky(lower, Some(&amd))?;
         let nnz_a = lower.compute_nnz();
         if choice == OrderingChoice::Amd || n < ND_MIN_ROWS || (amd_sym.len_val() as f64) < ND_FILL_RATIO * nnz_a as f64
         {
             return Ok(amd.with_analysis(lower, amd_sym));
         }
-        let nd = Self::nd(lower, rank)?;
+        let nd = with(Self::nd(lower, rank)?);
         let nd_sym = symbolic_cholesky(lower, Some(&nd))?;
         if nd_sym.len_val() < amd_sym.len_val() {
             Ok(nd.with_analysis(lower, nd_sym))
@@ -679,6 +704,7 @@ impl EliminationOrder {
             fwd,
             inv,
             kind,
+            supernodal: 1.0,
             analysis: None,
         }
     }
@@ -734,8 +760,20 @@ impl EliminationOrder {
     }
 }
 
+/// Multiple of faer's flops-per-entry test (supernodal when the
+/// factorization costs more than 40 flops per entry of `L`) from which a
+/// subdomain factor of the DD set-up ([`EliminationOrder::for_set_up`]) is
+/// supernodal. faer's default (1), which the whole-structure factor keeps,
+/// is tuned for one factorization and a few solves; a subdomain's factor
+/// serves hundreds of multi-column set-up solves and refactorizations, for
+/// which the supernodal kernels are faster from about 8 flops per entry on
+/// (the 2D subdomains of 0.4–2k dofs this moves: 65² nonsmooth grid with
+/// 16 subdomains 4.3 → 2.3 s, 32² with 4 0.60 → 0.27 s; per-iteration time
+/// and the 3D towers unchanged; BENCHMARKS.md).
+pub const SET_UP_SUPERNODAL_THRESHOLD: f64 = 0.2;
+
 /// Symbolic analysis of `lower` in `order` (`None`: faer's AMD).
-/// Supernodal/simplicial is faer's choice.
+/// Supernodal or simplicial by faer's test, scaled by the order's threshold.
 fn symbolic_cholesky(
     lower: &SparseColMat<usize, f64>,
     order: Option<&EliminationOrder>,
@@ -760,7 +798,12 @@ fn symbolic_cholesky(
         lower.symbolic(),
         Side::Lower,
         ordering,
-        CholeskySymbolicParams::default(),
+        CholeskySymbolicParams {
+            supernodal_flop_ratio_threshold: faer::sparse::linalg::SupernodalThreshold(
+                order.map_or(1.0, |o| o.supernodal),
+            ),
+            ..CholeskySymbolicParams::default()
+        },
     )
     .map(Arc::new)
     .map_err(|e| FactorError::Internal(format!("symbolic analysis: {e:?}")))

@@ -123,7 +123,7 @@ impl SubdomainOperator {
                 &identity
             }
         };
-        let order = EliminationOrder::best_in_reference(&stiffness, rank, OrderingChoice::Auto)
+        let order = EliminationOrder::for_set_up(&stiffness, Some(rank), OrderingChoice::Auto)
             .map_err(|e| Error::Numerical(format!("subdomain {id}: {e:?}")))?;
         if let Some(r) = kernel {
             if r.nrows() != n {
@@ -669,7 +669,7 @@ impl InteriorProblem {
             OrderingKind::NestedDissection if ni >= ND_MIN_ROWS => OrderingChoice::NestedDissection,
             _ => OrderingChoice::Amd,
         };
-        let (order, _) = EliminationOrder::choose(&lower, None, choice)
+        let order = EliminationOrder::for_set_up(&lower, None, choice)
             .map_err(|e| Error::Numerical(format!("subdomain {}: {e:?}", op.id)))?;
         let chol =
             SparseCholesky::factor_ordered(&lower, Some(&order), 1, SUBDOMAIN_PIVOT_RATIO).map_err(|e| match e {
