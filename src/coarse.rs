@@ -105,7 +105,7 @@ impl MacroBasis {
                 trace_hi[(i, j - 9 - trace_lo.ncols())]
             }
         });
-        orthonormal_columns(&all, 1e-10)
+        orthonormal_columns(&all, MACRO_RANK_RTOL)
     }
 
     /// The basis of one interface from the kernel traces of its two
@@ -122,7 +122,7 @@ impl MacroBasis {
             a + b,
             |i, j| if j < a { trace_lo[(i, j)] } else { trace_hi[(i, j - a)] },
         );
-        orthonormal_columns(&all, 1e-10)
+        orthonormal_columns(&all, MACRO_RANK_RTOL)
     }
 
     /// Assembles the per-interface blocks.
@@ -218,6 +218,17 @@ impl std::fmt::Debug for CoarseProblem {
 }
 
 /// Krylov dimension of the refinement (GMRES, restarted); most cycles.
+/// Relative singular value below which a column of an interface's macro
+/// basis counts as dependent on the others. The kernel traces that repeat
+/// a geometric mode carry the kernel vectors' round-off (up to ~5e-11 of
+/// the largest on the 130² grid); at 1e-10 that noise decided the rank
+/// (371 or 372 columns on the 130² grid, 2 334 or 2 336 on its nonsmooth
+/// twin's final cable set with 64 subdomains, where one choice left cg on
+/// a 2e-4 floor and the other converged in 43 iterations). Below the noise,
+/// a kept column is an orthonormal direction more, which costs a coarse
+/// unknown and never an answer.
+pub const MACRO_RANK_RTOL: f64 = 1e-12;
+
 const KRYLOV_DIM: usize = 30;
 const MAX_CYCLES: usize = 3;
 /// Backward error (see [`CoarseProblem::last_residual`]) at which the coarse
