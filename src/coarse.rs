@@ -222,11 +222,11 @@ impl std::fmt::Debug for CoarseProblem {
 /// basis counts as dependent on the others. The kernel traces that repeat
 /// a geometric mode carry the kernel vectors' round-off (up to ~5e-11 of
 /// the largest on the 130² grid); at 1e-10 that noise decided the rank
-/// (371 or 372 columns on the 130² grid, 2 334 or 2 336 on its nonsmooth
-/// twin's final cable set with 64 subdomains, where one choice left cg on
-/// a 2e-4 floor and the other converged in 43 iterations). Below the noise,
-/// a kept column is an orthonormal direction more, which costs a coarse
-/// unknown and never an answer.
+/// (371 or 372 columns on the 130² grid: 82 or 69 cg iterations; on its
+/// nonsmooth twin with 64 subdomains the smaller bases left cg stalled at
+/// 6e-3 after 752 iterations, and at 1e-12 it converges in 463). Below the
+/// noise, a kept column is an orthonormal direction more, which costs a
+/// coarse unknown and never an answer.
 pub const MACRO_RANK_RTOL: f64 = 1e-12;
 
 const KRYLOV_DIM: usize = 30;

@@ -150,20 +150,10 @@ pub struct NonsmoothCg {
     settled: Option<Vec<bool>>,
     pool: Pool,
     /// Solve each set on the partition restricted as it is before trying
-    /// it with its weak nodes repaired: set once inner solves stalled on
-    /// repaired partitions [`REPAIRED_STALLS`] times (see
-    /// [`NonsmoothCg::solve`]).
+    /// it with its weak nodes repaired: set once an inner solve stalled on
+    /// a repaired partition (see [`NonsmoothCg::solve`]).
     unrepaired_first: bool,
-    /// The set whose inner solve stalled on its repaired partition: it
-    /// alone is solved on the plain restriction.
-    unrepaired_for: Option<Vec<bool>>,
-    /// Inner solves that stalled on a repaired partition so far.
-    repaired_stalls: usize,
 }
-
-/// Stalls on repaired partitions after which every set is solved on the
-/// plain restriction first.
-pub const REPAIRED_STALLS: usize = 2;
 
 /// Operators of the previous set-up by [`OpKey`] while the next one is
 /// built (empty otherwise), and the factorizations and reuses since the
@@ -369,8 +359,6 @@ impl NonsmoothCg {
                 ..Pool::default()
             },
             unrepaired_first: false,
-            unrepaired_for: None,
-            repaired_stalls: 0,
         })
     }
 
@@ -452,8 +440,7 @@ impl NonsmoothCg {
             max_iterations: self.opts.max_iterations,
             search_direction: SearchDirection::Auto,
         };
-        let unrepaired_first = self.unrepaired_first || self.unrepaired_for.as_deref() == Some(slack);
-        let (own, pool) = (&self.dec, &mut self.pool);
+        let (own, pool, unrepaired_first) = (&self.dec, &mut self.pool, self.unrepaired_first);
         let step = if soft || !slack.iter().any(|&s| s) {
             let lin = linear_model(model, slack, if soft { SOFT } else { 0.0 });
             let (dd, keys) = pool.setup(&lin, own, None, &opts)?;
@@ -618,6 +605,7 @@ impl NonsmoothCg {
                 return Err(e);
             }
             let inner_converged = out.converged();
+            let inner_status = out.status;
             forces = Some(keyed_forces(dec, &dd.interface_forces()));
             total += out.iterations;
             history.extend(out.history.into_iter().map(|h| HistoryEntry {
@@ -629,31 +617,21 @@ impl NonsmoothCg {
             // stalled the inner cg at 2e-4 where the plain restriction
             // converges. It stays first otherwise: its subdomains have fewer
             // mechanisms, and the set-ups cost 1.5x less on the 65² grid.
-            // One stall moves only its own set to the plain restriction: on
-            // the 130² grid with 64 subdomains the plain restriction stalled
-            // at 6e-3 on the final set that the repaired partition solves
-            // in 43 iterations, and one intermediate set had stalled there.
             if out.status == Status::Stalled
                 && !self.unrepaired_first
-                && self.unrepaired_for.as_deref() != Some(&slack[..])
                 && self.current.as_ref().is_some_and(|s| s.repaired)
             {
                 if std::env::var_os("NSDD_NS_DEBUG").is_some() {
                     let st = self.current.as_ref().unwrap().dd.stats();
                     eprintln!(
-                        "outer {outer}: {} slack on the repaired partition stalled after {} its (kernel {} macro {}): this set goes to the plain restriction",
+                        "outer {outer}: {} slack on the repaired partition stalled after {} its (kernel {} macro {}): every set goes to the plain restriction from now on",
                         slack.iter().filter(|&&s| s).count(),
                         out.iterations,
                         st.kernel_unknowns,
                         st.macro_unknowns
                     );
                 }
-                self.repaired_stalls += 1;
-                if self.repaired_stalls >= REPAIRED_STALLS {
-                    self.unrepaired_first = true;
-                } else {
-                    self.unrepaired_for = Some(slack.clone());
-                }
+                self.unrepaired_first = true;
                 self.current = None;
                 continue;
             }
@@ -690,10 +668,11 @@ impl NonsmoothCg {
             violation = worst / scale;
             if std::env::var_os("NSDD_NS_DEBUG").is_some() {
                 eprintln!(
-                    "outer {outer}: {} slack, soft {soft}, inner tol {inner_tol:.1e}, {} its (conv {}), setup {setup_s:.3}s, cg {:.3}s, {} flips, violation {violation:.2e}",
+                    "outer {outer}: {} slack, soft {soft}, inner tol {inner_tol:.1e}, {} its (conv {}, {:?}), setup {setup_s:.3}s, cg {:.3}s, {} flips, violation {violation:.2e}",
                     slack.iter().filter(|&&s| s).count(),
                     out.iterations,
                     inner_converged,
+                    inner_status,
                     t_inner.elapsed().as_secs_f64(),
                     next.iter().zip(&slack).filter(|(a, b)| a != b).count()
                 );
