@@ -83,9 +83,16 @@ pub const INNER_TOL_FACTOR: f64 = 0.1;
 /// ill-conditioned enough that the default 1e-15 is at their round-off
 /// floor: its GMRES refinement then ran 15-30 iterations per coarse solve
 /// (7 096 in the 290 CG iterations of the 32² grid, 16 subdomains, 60 % of
-/// the solve time); a millionth of the inner tolerance takes 37 in all, for
-/// the same error against direct (7e-12) and 296 CG iterations.
-pub const COARSE_TARGET_FACTOR: f64 = 1e-6;
+/// the solve time); a millionth of the inner tolerance took 37 in all, for
+/// the same error against direct (7e-12) and 296 CG iterations. But a
+/// loose coarse solve can stall the loose inner solves of ill-conditioned
+/// sets (their indicator falls for ~10 iterations and grows back, restart
+/// after restart): at 1e-10 instead of 1e-6 the nonsmooth 130² grid takes
+/// 365 / 325 iterations with 16 / 64 subdomains instead of 689 / 463, the
+/// 32² grid with 64 subdomains 83 instead of 147, in less time; 1e-12 and
+/// the round-off default cost up to 1.8× more time on the 65² grid for no
+/// fewer iterations (BENCHMARKS.md, "Cheaper set-up").
+pub const COARSE_TARGET_FACTOR: f64 = 1e-10;
 
 /// Inner iterations allowed to a step whose set is clearly wrong (last
 /// relative violation at least [`EARLY_STOP_VIOLATION`]; the first step
