@@ -528,7 +528,8 @@ impl NonsmoothCg {
             _ => vec![false; nc],
         };
         let mut forces: Option<Forces> = self.current.as_ref().map(|c| self.keyed(c));
-        let mut history: Vec<HistoryEntry> = Vec::new();
+        // Sized like the inner solvers' own histories: no growth per iteration.
+        let mut history: Vec<HistoryEntry> = Vec::with_capacity(self.opts.max_iterations.min(100_000));
         let mut total = 0usize;
         let mut outer = 0usize;
         let mut setups = 0usize;
