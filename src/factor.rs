@@ -440,15 +440,11 @@ impl SparseCholesky {
     /// on `B`. No allocation.
     pub fn backward_columns(&mut self, data: &mut [f64], k: usize) {
         let n = self.n;
-        debug_assert_eq!(data.len(), n * k);
-        let mut j = 0;
-        while j < k {
-            let w = (k - j).min(self.scratch_cols);
-            let block = &mut data[j * n..(j + w) * n];
-            self.perm_buf[..n * w].copy_from_slice(block);
-            self.backward_in_perm_buf(w);
-            let x = &self.perm_buf[..n * w];
-            match self.symbolic.perm().map(|p| p.arrays()) {
+        self.by_blocks(data, k, |this, block, w| {
+            this.perm_buf[..n * w].copy_from_slice(block);
+            this.backward_in_perm_buf(w);
+            let x = &this.perm_buf[..n * w];
+            match this.symbolic.perm().map(|p| p.arrays()) {
                 Some((_, inv)) => {
                     for (bc, xc) in block.chunks_mut(n).zip(x.chunks(n)) {
                         bc.iter_mut().zip(inv).for_each(|(d, &v)| *d = xc[v]);
@@ -456,6 +452,18 @@ impl SparseCholesky {
                 }
                 None => block.copy_from_slice(x),
             }
+        });
+    }
+
+    /// Runs `step` on the column-major `data` (`k` columns) in blocks of at
+    /// most `scratch_cols` columns: the block and its width.
+    fn by_blocks(&mut self, data: &mut [f64], k: usize, mut step: impl FnMut(&mut Self, &mut [f64], usize)) {
+        let n = self.n;
+        debug_assert_eq!(data.len(), n * k);
+        let mut j = 0;
+        while j < k {
+            let w = (k - j).min(self.scratch_cols);
+            step(self, &mut data[j * n..(j + w) * n], w);
             j += w;
         }
     }
@@ -499,15 +507,10 @@ impl SparseCholesky {
     /// work of full solves. No allocation.
     pub fn forward_columns(&mut self, data: &mut [f64], k: usize) {
         let n = self.n;
-        debug_assert_eq!(data.len(), n * k);
-        let mut j = 0;
-        while j < k {
-            let w = (k - j).min(self.scratch_cols);
-            let block = &mut data[j * n..(j + w) * n];
-            self.forward(faer::MatRef::from_column_major_slice(block, n, w), w);
-            block.copy_from_slice(&self.perm_buf[..n * w]);
-            j += w;
-        }
+        self.by_blocks(data, k, |this, block, w| {
+            this.forward(faer::MatRef::from_column_major_slice(block, n, w), w);
+            block.copy_from_slice(&this.perm_buf[..n * w]);
+        });
     }
 
     /// Resizes the solve scratch for blocks of `k` columns (set-up only:
@@ -1141,6 +1144,28 @@ pub fn sym_matmat(lower: &SparseColMat<usize, f64>, x: &[f64], y: &mut [f64], k:
     }
 }
 
+/// Lower-triangle triplets of a lattice Laplacian (`m × m × depth` points,
+/// 6.5 on the diagonal, −1 to each lattice neighbour): SPD; in 3D enough
+/// fill for faer to go supernodal. Point `(i, j, l)` is row `(l m + i) m + j`.
+#[cfg(test)]
+pub(crate) fn lattice_triplets(m: usize, depth: usize) -> Vec<(usize, usize, f64)> {
+    let idx = |i: usize, j: usize, l: usize| (l * m + i) * m + j;
+    let mut trip = Vec::new();
+    for l in 0..depth {
+        for i in 0..m {
+            for j in 0..m {
+                trip.push((idx(i, j, l), idx(i, j, l), 6.5));
+                for (di, dj, dl) in [(1, 0, 0), (0, 1, 0), (0, 0, 1)] {
+                    if i + di < m && j + dj < m && l + dl < depth {
+                        trip.push((idx(i + di, j + dj, l + dl), idx(i, j, l), -1.0));
+                    }
+                }
+            }
+        }
+    }
+    trip
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -1219,24 +1244,8 @@ mod tests {
     #[test]
     fn skipping_zeros_gives_faers_bits() {
         let lattice = |m: usize, dims: usize| {
-            // Laplacian-like pattern of an m^dims lattice with a diagonal
-            // shift: SPD; in 3D enough fill for faer to go supernodal.
-            let nz = if dims == 3 { m } else { 1 };
-            let idx = |i: usize, j: usize, l: usize| (l * m + i) * m + j;
-            let mut trip = Vec::new();
-            for l in 0..nz {
-                for i in 0..m {
-                    for j in 0..m {
-                        trip.push((idx(i, j, l), idx(i, j, l), 6.5));
-                        for (di, dj, dl) in [(1, 0, 0), (0, 1, 0), (0, 0, 1)] {
-                            if i + di < m && j + dj < m && l + dl < nz {
-                                trip.push((idx(i + di, j + dj, l + dl), idx(i, j, l), -1.0));
-                            }
-                        }
-                    }
-                }
-            }
-            lower_csc(m * m * nz, &trip).unwrap()
+            let depth = if dims == 3 { m } else { 1 };
+            lower_csc(m * m * depth, &lattice_triplets(m, depth)).unwrap()
         };
         for (a, supernodal) in [(lattice(8, 2), false), (lattice(14, 3), true)] {
             let n = a.nrows();

@@ -906,21 +906,8 @@ mod tests {
     #[test]
     fn schur_block_equals_the_dense_schur_complement_by_both_routes() {
         for (m, depth) in [(14, 14), (14, 1)] {
-            let idx = |i: usize, j: usize, l: usize| (l * m + i) * m + j;
             let n = m * m * depth;
-            let mut trip = Vec::new();
-            for l in 0..depth {
-                for i in 0..m {
-                    for j in 0..m {
-                        trip.push((idx(i, j, l), idx(i, j, l), 6.5));
-                        for (di, dj, dl) in [(1, 0, 0), (0, 1, 0), (0, 0, 1)] {
-                            if i + di < m && j + dj < m && l + dl < depth {
-                                trip.push((idx(i + di, j + dj, l + dl), idx(i, j, l), -1.0));
-                            }
-                        }
-                    }
-                }
-            }
+            let trip = crate::factor::lattice_triplets(m, depth);
             let lower = lower_csc(n, &trip).unwrap();
             let mut dense = Mat::<f64>::zeros(n, n);
             for &(r, c, v) in &trip {
