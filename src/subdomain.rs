@@ -726,10 +726,12 @@ impl InteriorProblem {
     /// The principal block `S_E[rows, rows]` of the Schur complement for
     /// interface dofs `rows` (local; the subdomain's other interface dofs
     /// held at zero): `K_FF − K_FI K_ii⁻¹ K_IF`, with `K_IF` read off the
-    /// stored triangle in one pass and the interior solves batched
-    /// ([`SCHUR_BLOCK_RHS`] columns at a time): forward substitutions and
-    /// `Wᵀ W` where that is cheaper (up to [`SCHUR_FORWARD_ENTRIES`]), full
-    /// solves otherwise. Set-up only (allocates).
+    /// stored triangle in one pass. Up to [`SCHUR_FORWARD_ENTRIES`], every
+    /// face column is forward-substituted once (`W = L⁻¹ P K_IF`), then
+    /// either `Wᵀ W` is formed over the rows the face reaches or the
+    /// solves are finished by backward substitution, by
+    /// [`SCHUR_PRODUCT_RATIO`]; a larger face takes full solves
+    /// [`SCHUR_BLOCK_RHS`] columns at a time. Set-up only (allocates).
     pub fn schur_block(&mut self, op: &SubdomainOperator, rows: &[u32]) -> Result<Mat<f64>> {
         self.schur_block_with(op, rows, SCHUR_PRODUCT_RATIO)
     }
@@ -859,10 +861,8 @@ pub const SCHUR_PRODUCT_RATIO: usize = 2;
 pub const SCHUR_BLOCK_RHS: usize = 32;
 
 /// Largest `W = L⁻¹ P K_IF` (interior rows × face columns) that
-/// [`InteriorProblem::schur_block`] keeps whole to form `K_FF − Wᵀ W` from
-/// forward substitutions alone (16 M values, 128 MB); a larger face, or
-/// one where the product costs more than the backward substitutions it
-/// saves, takes full solves a block of columns at a time.
+/// [`InteriorProblem::schur_block`] keeps whole (16 M values, 128 MB); a
+/// larger face takes full solves a block of columns at a time.
 pub const SCHUR_FORWARD_ENTRIES: usize = 1 << 24;
 
 /// Orthonormal basis of the column span of `a`, dropping directions whose
