@@ -391,22 +391,13 @@ impl SparseCholesky {
     /// arithmetic in faer's order: the same bits.
     pub fn solve_block(&mut self, mut rhs: MatMut<'_, f64>) {
         let k = rhs.ncols();
-        let n = self.n;
         let mut j = 0;
         while j < k {
             let w = (k - j).min(self.scratch_cols);
             let mut block = rhs.rb_mut().subcols_mut(j, w);
             self.forward(block.rb(), w);
             self.backward_in_perm_buf(w);
-            let x = &self.perm_buf[..n * w];
-            let perm = self.symbolic.perm().map(|p| p.arrays());
-            for c in 0..w {
-                let xc = &x[c * n..(c + 1) * n];
-                match perm {
-                    Some((_, inv)) => inv.iter().enumerate().for_each(|(i, &v)| block[(i, c)] = xc[v]),
-                    None => xc.iter().enumerate().for_each(|(i, &v)| block[(i, c)] = v),
-                }
-            }
+            self.unpermute(w, |i, c, v| block[(i, c)] = v);
             j += w;
         }
     }
@@ -443,16 +434,21 @@ impl SparseCholesky {
         self.by_blocks(data, k, |this, block, w| {
             this.perm_buf[..n * w].copy_from_slice(block);
             this.backward_in_perm_buf(w);
-            let x = &this.perm_buf[..n * w];
-            match this.symbolic.perm().map(|p| p.arrays()) {
-                Some((_, inv)) => {
-                    for (bc, xc) in block.chunks_mut(n).zip(x.chunks(n)) {
-                        bc.iter_mut().zip(inv).for_each(|(d, &v)| *d = xc[v]);
-                    }
-                }
-                None => block.copy_from_slice(x),
-            }
+            this.unpermute(w, |i, c, v| block[c * n + i] = v);
         });
+    }
+
+    /// Hands out the first `w` columns of `perm_buf` in the original row
+    /// order: `put(row, column, value)`.
+    fn unpermute(&self, w: usize, mut put: impl FnMut(usize, usize, f64)) {
+        let n = self.n;
+        let perm = self.symbolic.perm().map(|p| p.arrays());
+        for (c, xc) in self.perm_buf[..n * w].chunks(n.max(1)).enumerate() {
+            match perm {
+                Some((_, inv)) => inv.iter().enumerate().for_each(|(i, &v)| put(i, c, xc[v])),
+                None => xc.iter().enumerate().for_each(|(i, &v)| put(i, c, v)),
+            }
+        }
     }
 
     /// Runs `step` on the column-major `data` (`k` columns) in blocks of at

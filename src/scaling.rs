@@ -271,6 +271,14 @@ const DELUXE_CHOLESKY_MIN_DOFS: usize = 96;
 /// Inverse-iteration steps of that estimate.
 const DELUXE_INVERSE_ITERATIONS: usize = 8;
 
+/// The entries of `d`, column-major, if all are finite.
+fn finite_column_major(d: &Mat<f64>) -> Option<Vec<f64>> {
+    let data: Vec<f64> = (0..d.ncols())
+        .flat_map(|j| (0..d.nrows()).map(move |i| d[(i, j)]))
+        .collect();
+    data.iter().all(|v| v.is_finite()).then_some(data)
+}
+
 impl DeluxeFace {
     /// The face `face` (entry indices) with the face blocks `s_lo`, `s_hi`
     /// (symmetric, `face.len()` square). `D_hi = (S_lo + S_hi)⁺ S_hi + ½ N Nᵀ`
@@ -341,12 +349,7 @@ impl DeluxeFace {
         if !(rayleigh > DELUXE_CHOLESKY_EIGEN_RATIO * trace) {
             return None;
         }
-        let d = llt.solve(s_hi);
-        let mut data = Vec::with_capacity(n * n);
-        for j in 0..n {
-            data.extend((0..n).map(|i| d[(i, j)]));
-        }
-        data.iter().all(|v| v.is_finite()).then_some(data)
+        finite_column_major(&llt.solve(s_hi))
     }
 
     /// `(S_lo + S_hi)⁺ S_hi + ½ N Nᵀ` by eigendecomposition, column-major.
@@ -371,15 +374,7 @@ impl DeluxeFace {
                 }
             }
         }
-        let d = u * scaled + u * null;
-        if !(0..n).all(|j| (0..n).all(|i| d[(i, j)].is_finite())) {
-            return None;
-        }
-        let mut data = Vec::with_capacity(n * n);
-        for j in 0..n {
-            data.extend((0..n).map(|i| d[(i, j)]));
-        }
-        Some(data)
+        finite_column_major(&(u * scaled + u * null))
     }
 
     /// `B_D,loᵀ r` and `B_D,hiᵀ r` on the face: `lo[f] = (D_hi r_F)`, `hi[f] =

@@ -788,11 +788,7 @@ impl InteriorProblem {
             let mut w = std::mem::take(&mut self.face_scratch);
             w.clear();
             w.resize(ni * nf, 0.0);
-            for (c, col) in kif.iter().enumerate() {
-                for &(i, v) in col {
-                    w[c * ni + i as usize] += v;
-                }
-            }
+            scatter_columns(&kif, &mut w, ni);
             chol.forward_columns(&mut w, nf);
             let mut reached = vec![false; ni];
             for col in w.chunks(ni) {
@@ -818,12 +814,7 @@ impl InteriorProblem {
                 faer::linalg::matmul::matmul(s.as_mut(), faer::Accum::Add, wc.transpose(), wc, -1.0, faer::Par::Seq);
             } else {
                 chol.backward_columns(&mut w, nf);
-                for (a, col) in kif.iter().enumerate() {
-                    for (c, xc) in w.chunks(ni).enumerate() {
-                        let dot: f64 = col.iter().map(|&(i, v)| v * xc[i as usize]).sum();
-                        s[(a, c)] -= dot;
-                    }
-                }
+                subtract_products(&mut s, &kif, &w, ni, 0);
             }
             self.face_scratch = w;
         } else {
@@ -831,24 +822,34 @@ impl InteriorProblem {
             for c0 in (0..nf).step_by(width) {
                 let w = width.min(nf - c0);
                 x[..ni * w].iter_mut().for_each(|v| *v = 0.0);
-                for (c, col) in kif[c0..c0 + w].iter().enumerate() {
-                    for &(i, v) in col {
-                        x[c * ni + i as usize] += v;
-                    }
-                }
+                scatter_columns(&kif[c0..c0 + w], &mut x[..ni * w], ni);
                 chol.solve_columns(&mut x[..ni * w], w);
-                // S[a, c] −= K_IF[:, a] · X[:, c]
-                for (a, col) in kif.iter().enumerate() {
-                    for c in 0..w {
-                        let xc = &x[c * ni..(c + 1) * ni];
-                        let dot: f64 = col.iter().map(|&(i, v)| v * xc[i as usize]).sum();
-                        s[(a, c0 + c)] -= dot;
-                    }
-                }
+                subtract_products(&mut s, &kif, &x[..ni * w], ni, c0);
             }
         }
         chol.set_max_rhs(1).map_err(internal)?;
         Ok(s)
+    }
+}
+
+/// Adds the sparse columns `cols` (interior row, value) into the
+/// column-major block `x` of `ni` rows, one column each.
+fn scatter_columns(cols: &[Vec<(u32, f64)>], x: &mut [f64], ni: usize) {
+    for (xc, col) in x.chunks_mut(ni).zip(cols) {
+        for &(i, v) in col {
+            xc[i as usize] += v;
+        }
+    }
+}
+
+/// `S[a, c0 + c] −= K_IF[:, a] · X[:, c]` for the column-major solutions
+/// `x` (`ni` rows) of face columns `c0..`.
+fn subtract_products(s: &mut Mat<f64>, kif: &[Vec<(u32, f64)>], x: &[f64], ni: usize, c0: usize) {
+    for (a, col) in kif.iter().enumerate() {
+        for (c, xc) in x.chunks(ni).enumerate() {
+            let dot: f64 = col.iter().map(|&(i, v)| v * xc[i as usize]).sum();
+            s[(a, c0 + c)] -= dot;
+        }
     }
 }
 
