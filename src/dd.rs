@@ -278,6 +278,25 @@ pub(crate) struct SubState {
     pub(crate) kc: Vec<f64>,
     /// Factored interior problem for the Dirichlet preconditioner of CG.
     pub(crate) interior: Option<InteriorProblem>,
+    /// Schur-complement face blocks of the deluxe weights by face rows,
+    /// kept for a later set-up that takes this subdomain over
+    /// ([`DdSolver::new_pooled`]); `None`: not kept.
+    pub(crate) face_blocks: Option<Vec<FaceBlock>>,
+}
+
+/// A Schur-complement face block `S_E[rows, rows]` and its rows.
+pub(crate) type FaceBlock = (Vec<u32>, Mat<f64>);
+
+/// What a set-up of a changed structure can take over from an earlier
+/// one for a subdomain whose elements and dof layout did not change
+/// (the nonsmooth CG's active-set steps): its factored operator, and,
+/// where its interface dofs are also the same, the interior factor of
+/// the Dirichlet preconditioner and the Schur face blocks of the deluxe
+/// weights.
+pub(crate) struct PooledSubdomain {
+    pub(crate) op: SubdomainOperator,
+    interior: Option<InteriorProblem>,
+    face_blocks: Vec<FaceBlock>,
 }
 
 pub(crate) struct IfaceState {
@@ -317,6 +336,13 @@ pub struct DdStats {
     pub setup_s: f64,
     /// Subdomain assembly and factorizations (with kernels).
     pub factor_s: f64,
+    /// Interior (Dirichlet preconditioner) factorizations of `cg`.
+    pub interior_s: f64,
+    /// Interior factors and deluxe face blocks taken over from an earlier
+    /// set-up instead of being computed (the nonsmooth CG's active-set
+    /// steps; see `NonsmoothOutcome::reused`).
+    pub interiors_reused: usize,
+    pub face_blocks_reused: usize,
     /// Macro basis, batched solves for `L` and `G`, coarse factorization.
     pub coarse_s: f64,
     /// Choice of `d` (power iteration on the interface operator).
@@ -344,7 +370,7 @@ pub struct DdSolver {
     pub(crate) dof_maps: Vec<Vec<usize>>,
     /// Multiplicity of each local dof, for every subdomain.
     pub(crate) multiplicity: Vec<Vec<u32>>,
-    stats: DdStats,
+    pub(crate) stats: DdStats,
     /// The CG method's workspace (`None` unless the method is cg).
     pub(crate) cg: Option<CgWorkspace>,
     /// Whether cg must certify its tolerance (energy estimate from its
@@ -433,6 +459,37 @@ impl DdSolver {
         reused: Vec<Option<SubdomainOperator>>,
         placement: Placement,
     ) -> Result<DdSolver> {
+        Self::set_up_reusing(model, dec, opts, reused, None, placement)
+    }
+
+    /// [`Self::new_reusing`] with the interior factors and face blocks of
+    /// the taken-over subdomains too; the set-up keeps its own face blocks
+    /// for the next one ([`Self::into_pooled`]).
+    pub(crate) fn new_pooled(
+        model: &Model,
+        dec: &Decomposition,
+        opts: DdOptions,
+        reused: Vec<Option<PooledSubdomain>>,
+        placement: Placement,
+    ) -> Result<DdSolver> {
+        let (ops, parts): (Vec<_>, Vec<_>) = reused
+            .into_iter()
+            .map(|p| match p {
+                Some(p) => (Some(p.op), (p.interior, p.face_blocks)),
+                None => (None, (None, Vec::new())),
+            })
+            .unzip();
+        Self::set_up_reusing(model, dec, opts, ops, Some(parts), placement)
+    }
+
+    fn set_up_reusing(
+        model: &Model,
+        dec: &Decomposition,
+        opts: DdOptions,
+        reused: Vec<Option<SubdomainOperator>>,
+        pooled: Option<Vec<(Option<InteriorProblem>, Vec<FaceBlock>)>>,
+        placement: Placement,
+    ) -> Result<DdSolver> {
         let t0 = Instant::now();
         let problem = DdProblem::from_model_reusing(model, dec, reused, placement)?;
         let factor_s = t0.elapsed().as_secs_f64();
@@ -440,7 +497,7 @@ impl DdSolver {
             let (node, c) = model.dof_owner(d);
             format!("node {node}, component {}", ["x", "y", "z"][c])
         };
-        let mut solver = DdSolver::from_problem_named(problem, opts, &name_dof)?;
+        let mut solver = DdSolver::from_problem_named(problem, opts, &name_dof, pooled)?;
         solver.stats.setup_s = t0.elapsed().as_secs_f64();
         solver.stats.factor_s = factor_s;
         Ok(solver)
@@ -448,15 +505,18 @@ impl DdSolver {
 
     /// Sets up an algebraic problem (already factored operators).
     pub fn from_problem(problem: DdProblem<'_>, opts: DdOptions) -> Result<DdSolver> {
-        Self::from_problem_named(problem, opts, &|d| format!("global dof {d}"))
+        Self::from_problem_named(problem, opts, &|d| format!("global dof {d}"), None)
     }
 
     /// [`DdSolver::from_problem`]; a mechanism message names the dof that
     /// moves most with `name_dof` (a node and component for a truss).
+    /// `pooled`: the interior factors and face blocks taken over, one per
+    /// subdomain held (see [`Self::new_pooled`]).
     fn from_problem_named(
         problem: DdProblem<'_>,
         opts: DdOptions,
         name_dof: &dyn Fn(usize) -> String,
+        pooled: Option<Vec<(Option<InteriorProblem>, Vec<FaceBlock>)>>,
     ) -> Result<DdSolver> {
         let t0 = Instant::now();
         let DdProblem {
@@ -620,7 +680,10 @@ impl DdSolver {
             alpha_off += r;
         }
         let mut subs: Vec<SubState> = Vec::with_capacity(owned.len());
+        let keep = pooled.is_some();
+        let mut pooled = pooled.unwrap_or_default().into_iter();
         for (k, (op, load)) in operators.into_iter().zip(loads).enumerate() {
+            let (interior, face_blocks) = pooled.next().unwrap_or_default();
             let s = first + k;
             let sd = &dec.subdomains[s];
             let n = op.n();
@@ -656,7 +719,8 @@ impl DdSolver {
                 v_norm2: 0.0,
                 dlambda2: 0.0,
                 dforce2: 0.0,
-                interior: None,
+                interior,
+                face_blocks: keep.then_some(face_blocks),
                 op,
             });
         }
@@ -781,6 +845,9 @@ impl DdSolver {
             search_direction: 0.0,
             setup_s: 0.0,
             factor_s: 0.0,
+            interior_s: 0.0,
+            interiors_reused: 0,
+            face_blocks_reused: 0,
             coarse_s: if use_coarse {
                 t_coarse.elapsed().as_secs_f64()
             } else {
@@ -817,14 +884,44 @@ impl DdSolver {
                 solver.op.interface_sizes(),
                 solver.op.subs.iter().map(|s| s.v.len()),
             ));
+            if solver.opts.preconditioner != Preconditioner::Dirichlet {
+                // Taken-over interiors serve the Dirichlet preconditioner only
+                // (the lumped deluxe blocks are of `K_E`).
+                for st in solver.op.subs.iter_mut() {
+                    st.interior = None;
+                    if let Some(b) = st.face_blocks.as_mut() {
+                        b.clear();
+                    }
+                }
+            }
             if solver.opts.preconditioner == Preconditioner::Dirichlet {
                 let t = Instant::now();
+                solver.stats.interiors_reused = solver
+                    .op
+                    .subs
+                    .iter()
+                    .filter(|st| {
+                        st.interior
+                            .as_ref()
+                            .is_some_and(|ip| ip.fits(st.op.n(), &st.iface_dofs))
+                    })
+                    .count();
                 let r = solver.op.subs.par_iter_mut().try_for_each(|st| -> Result<()> {
-                    st.interior = Some(InteriorProblem::new(&st.op, &st.iface_dofs)?);
+                    let n = st.op.n();
+                    st.interior = match st.interior.take().filter(|ip| ip.fits(n, &st.iface_dofs)) {
+                        Some(ip) => Some(ip),
+                        None => {
+                            // The face blocks were of the old interface.
+                            if let Some(b) = st.face_blocks.as_mut() {
+                                b.clear();
+                            }
+                            Some(InteriorProblem::new(&st.op, &st.iface_dofs)?)
+                        }
+                    };
                     Ok(())
                 });
                 solver.op.comm.agree(r)?;
-                solver.stats.factor_s += t.elapsed().as_secs_f64();
+                solver.stats.interior_s = t.elapsed().as_secs_f64();
             }
             // After the interior problems: the deluxe blocks apply them.
             let t = Instant::now();
@@ -949,6 +1046,19 @@ impl DdSolver {
     /// set-up that reuses them ([`Self::new_reusing`]).
     pub fn into_operators(self) -> Vec<SubdomainOperator> {
         self.op.subs.into_iter().map(|s| s.op).collect()
+    }
+
+    /// The subdomains held here, for a later [`Self::new_pooled`].
+    pub(crate) fn into_pooled(self) -> Vec<PooledSubdomain> {
+        self.op
+            .subs
+            .into_iter()
+            .map(|s| PooledSubdomain {
+                op: s.op,
+                interior: s.interior,
+                face_blocks: s.face_blocks.unwrap_or_default(),
+            })
+            .collect()
     }
 
     /// Number of subdomains (on every process).
@@ -1191,5 +1301,55 @@ impl DdSolver {
     pub(crate) fn assemble(&self) -> (Vec<f64>, Vec<f64>) {
         self.op
             .assemble(&self.dof_maps[self.op.comm.owned()], self.n_free, self.n_cables)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::generate::{grid, GridParams};
+    use crate::outcome::Status;
+    use crate::solve::decompose;
+
+    /// A set-up that takes every subdomain over from an earlier one of the
+    /// same structure (operators, interior factors, deluxe face blocks)
+    /// solves with the same bits as a fresh one: what it takes over is
+    /// what it would have computed. A stale interior factor or face block
+    /// (of another interface) would change the preconditioner, and with it
+    /// the iterates.
+    #[test]
+    fn a_pooled_set_up_solves_with_the_bits_of_a_fresh_one() {
+        let scene = grid(&GridParams {
+            nx: 12,
+            ny: 9,
+            unilateral: false,
+            ..Default::default()
+        });
+        let model = Model::from_scene(&scene).unwrap();
+        let dec = decompose(&model, &scene, 6).unwrap();
+        let opts = DdOptions {
+            coarse: true,
+            tolerance: 1e-10,
+            max_iterations: 200,
+            search_direction: SearchDirection::Auto,
+            krylov: true,
+            preconditioner: Preconditioner::Dirichlet,
+            interface_scaling: InterfaceScaling::Deluxe,
+        };
+        let f = model.load_cases[0].clone();
+        let mut fresh = DdSolver::new_pooled(&model, &dec, opts.clone(), Vec::new(), Placement::Process).unwrap();
+        assert_eq!(fresh.stats.interiors_reused, 0);
+        assert_eq!(fresh.stats.face_blocks_reused, 0);
+        let a = fresh.solve(&f, false, None).unwrap();
+        assert_eq!(a.status, Status::Converged);
+        let pooled: Vec<Option<PooledSubdomain>> = fresh.into_pooled().into_iter().map(Some).collect();
+        let faces: usize = pooled.iter().flatten().map(|p| p.face_blocks.len()).sum();
+        assert!(faces >= dec.interfaces.len(), "{faces} face blocks kept");
+        let mut again = DdSolver::new_pooled(&model, &dec, opts, pooled, Placement::Process).unwrap();
+        assert_eq!(again.stats.interiors_reused, dec.len());
+        assert_eq!(again.stats.face_blocks_reused, faces);
+        let b = again.solve(&f, false, None).unwrap();
+        assert_eq!(a.iterations, b.iterations);
+        assert!(a.u.iter().zip(&b.u).all(|(x, y)| x.to_bits() == y.to_bits()));
     }
 }

@@ -22,8 +22,10 @@
 //! Each new slack set gets a new [`DdSolver`] (macro space and coarse
 //! problem rebuilt), but only the subdomains whose elements or local dof
 //! layout changed are refactored: the others take their operator over from
-//! the previous set-up (see [`NonsmoothOutcome::reused`]). The last set-up
-//! is kept, so load steps and load cases whose set does not change cost no
+//! the previous set-up (see [`NonsmoothOutcome::reused`]), and, where their
+//! interface dofs are unchanged too, their interior (Dirichlet) factor and
+//! the deluxe face blocks of their unchanged faces. The last set-up is
+//! kept, so load steps and load cases whose set does not change cost no
 //! set-up.
 //!
 //! A softened step keeps a slack cable's geometric stiffness `t0 / L`, an
@@ -34,12 +36,11 @@
 //! `NSDD_NS_DEBUG=1` prints one line per outer step (set size, inner
 //! tolerance and iterations, set-up and CG time, coarse sizes) to stderr.
 //!
-//! Not done yet: reusing the coarse contributions and interior (Dirichlet)
-//! factors of unchanged subdomains, and low-rank updates instead of
-//! refactoring.
+//! Not done yet: reusing the coarse contributions and the orderings of
+//! unchanged subdomains, and low-rank updates instead of refactoring.
 
 use crate::comm::Placement;
-use crate::dd::{DdOptions, DdSolver};
+use crate::dd::{DdOptions, DdSolver, PooledSubdomain};
 use crate::decomposition::Decomposition;
 use crate::direct::Equilibrium;
 use crate::error::{Error, Result};
@@ -50,7 +51,6 @@ use crate::partition::Partition;
 use crate::result::HistoryEntry;
 use crate::scaling::InterfaceScaling;
 use crate::scene::{Preconditioner, SearchDirection};
-use crate::subdomain::SubdomainOperator;
 use std::collections::{HashMap, HashSet};
 
 /// Stiffness fraction kept by slack cables in a step whose slack set alone
@@ -137,6 +137,11 @@ pub struct NonsmoothOutcome {
     /// instead (same elements and dof layout: no slack cable of theirs
     /// changed).
     pub reused: usize,
+    /// Of the reused subdomains, those whose interface dofs did not change
+    /// either kept their interior (Dirichlet) factor too...
+    pub interiors_reused: usize,
+    /// ...and their deluxe face blocks on the faces that did not change.
+    pub face_blocks_reused: usize,
     /// Element elongations, each measured in its own subdomain's copy
     /// (slack cables, outside the last set-up's structure, from the
     /// assembled displacement): see [`crate::outcome::Outcome::elongations`].
@@ -169,9 +174,11 @@ pub struct NonsmoothCg {
 struct Pool {
     /// Where the subdomains of every set-up live.
     placement: Placement,
-    ops: HashMap<OpKey, SubdomainOperator>,
+    ops: HashMap<OpKey, PooledSubdomain>,
     factored: usize,
     reused: usize,
+    interiors_reused: usize,
+    face_blocks_reused: usize,
 }
 
 impl Pool {
@@ -187,11 +194,16 @@ impl Pool {
     ) -> Result<(DdSolver, Vec<OpKey>)> {
         // Keys of the subdomains held here (all, or an MPI rank's block).
         let keys = op_keys(lin, dec, original, self.placement.owned(dec.len()));
-        let reused: Vec<Option<SubdomainOperator>> = keys.iter().map(|k| self.ops.remove(k)).collect();
+        let reused: Vec<Option<PooledSubdomain>> = keys.iter().map(|k| self.ops.remove(k)).collect();
+        // The rest would only raise the peak memory of this set-up (a retry
+        // on another partition of the same set refactors instead).
+        self.ops.clear();
         let hits = reused.iter().filter(|o| o.is_some()).count();
         self.reused += hits;
         self.factored += keys.len() - hits;
-        let dd = DdSolver::new_reusing(lin, dec, opts.clone(), reused, self.placement.clone())?;
+        let dd = DdSolver::new_pooled(lin, dec, opts.clone(), reused, self.placement.clone())?;
+        self.interiors_reused += dd.stats().interiors_reused;
+        self.face_blocks_reused += dd.stats().face_blocks_reused;
         Ok((dd, keys))
     }
 }
@@ -427,7 +439,7 @@ impl NonsmoothCg {
         // owning the flipped cables, and their neighbours only where a node
         // at the cut appears or disappears).
         if let Some(old) = self.current.take() {
-            for (key, op) in old.keys.into_iter().zip(old.dd.into_operators()) {
+            for (key, op) in old.keys.into_iter().zip(old.dd.into_pooled()) {
                 self.pool.ops.insert(key, op);
             }
         }
@@ -535,6 +547,8 @@ impl NonsmoothCg {
         let mut setups = 0usize;
         self.pool.factored = 0;
         self.pool.reused = 0;
+        self.pool.interiors_reused = 0;
+        self.pool.face_blocks_reused = 0;
         let mut seen: HashSet<Vec<bool>> = HashSet::new();
         let mut murty = false;
         // Relative size of the last violation; none measured yet.
@@ -686,8 +700,18 @@ impl NonsmoothCg {
                 );
                 let st = self.current.as_ref().unwrap().dd.stats();
                 eprintln!(
-                    "   kernel {} macro {} nnz_l {} factor {:.3}s coarse {:.3}s; subdomains factored {} reused {} so far",
-                    st.kernel_unknowns, st.macro_unknowns, st.nnz_l, st.factor_s, st.coarse_s, self.pool.factored, self.pool.reused
+                    "   kernel {} macro {} nnz_l {} factor {:.3}s coarse {:.3}s interior {:.3}s scaling {:.3}s; subdomains factored {} reused {} (interiors {}, face blocks {}) so far",
+                    st.kernel_unknowns,
+                    st.macro_unknowns,
+                    st.nnz_l,
+                    st.factor_s,
+                    st.coarse_s,
+                    st.interior_s,
+                    st.scaling_s,
+                    self.pool.factored,
+                    self.pool.reused,
+                    self.pool.interiors_reused,
+                    self.pool.face_blocks_reused
                 );
             }
             if let Some(h) = history.last_mut() {
@@ -723,6 +747,8 @@ impl NonsmoothCg {
                     setups,
                     factored: self.pool.factored,
                     reused: self.pool.reused,
+                    interiors_reused: self.pool.interiors_reused,
+                    face_blocks_reused: self.pool.face_blocks_reused,
                     elongations,
                     message: inner_message,
                 });
@@ -743,6 +769,8 @@ impl NonsmoothCg {
                     setups,
                     factored: self.pool.factored,
                     reused: self.pool.reused,
+                    interiors_reused: self.pool.interiors_reused,
+                    face_blocks_reused: self.pool.face_blocks_reused,
                     elongations,
                     message: inner_message,
                 });

@@ -718,6 +718,28 @@ impl InteriorProblem {
         self.face_scratch = Vec::new();
     }
 
+    /// Whether this is the interior problem of an operator of `n` dofs
+    /// with the interface dofs `boundary` (local, increasing): its
+    /// interior dofs are the rest. A set-up that takes a subdomain
+    /// operator over from an earlier one keeps its interior factor when
+    /// the subdomain's interface dofs did not change.
+    pub fn fits(&self, n: usize, boundary: &[u32]) -> bool {
+        if self.interior.len() + boundary.len() != n {
+            return false;
+        }
+        // Both lists increasing and disjoint with n entries in all: the
+        // interior is the complement iff no dof appears in both.
+        let (mut i, mut b) = (0, 0);
+        while i < self.interior.len() && b < boundary.len() {
+            match self.interior[i].cmp(&boundary[b]) {
+                std::cmp::Ordering::Equal => return false,
+                std::cmp::Ordering::Less => i += 1,
+                std::cmp::Ordering::Greater => b += 1,
+            }
+        }
+        true
+    }
+
     /// Stored entries of the interior factor.
     pub fn nnz_l(&self) -> usize {
         self.chol.as_ref().map_or(0, |c| c.nnz_l())

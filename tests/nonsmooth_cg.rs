@@ -390,6 +390,16 @@ fn unchanged_subdomains_are_not_refactored() {
                 out.setups
             );
             assert!(out.reused >= out.setups * (ns - 2 * touched - 2));
+            // Most reused subdomains keep their interface too, and with it
+            // their interior factor and deluxe face blocks (each subdomain of
+            // the 4×4 partition has at least two faces).
+            assert!(
+                out.interiors_reused <= out.reused && out.interiors_reused >= out.reused / 2,
+                "{} interiors kept of {} operators reused",
+                out.interiors_reused,
+                out.reused
+            );
+            assert!(out.face_blocks_reused >= 2 * out.interiors_reused);
         }
         previous = Some(slack);
     }

@@ -447,6 +447,7 @@ impl DdSolver {
         // Face blocks of each subdomain's Schur complement, one column per
         // face dof: `S_E e_l` restricted to the face.
         let ifaces = &self.op.ifaces;
+        let taken_over = std::sync::atomic::AtomicUsize::new(0);
         let blocks: Vec<Vec<Mat<f64>>> = self
             .op
             .subs
@@ -454,6 +455,8 @@ impl DdSolver {
             .map(|s| {
                 let n = s.op.n();
                 let (mut x, mut y) = (vec![0.0; n], vec![0.0; n]);
+                // Kept blocks of faces this set-up no longer has are dropped.
+                let mut earlier = s.face_blocks.as_mut().map(std::mem::take).unwrap_or_default();
                 let blocks = s
                     .ifaces
                     .iter()
@@ -463,9 +466,23 @@ impl DdSolver {
                         let face = &faces[i];
                         if let Some(ip) = s.interior.as_mut() {
                             let rows: Vec<u32> = face.iter().map(|&f| idx[f as usize]).collect();
-                            // A failure (out of memory) leaves this face
-                            // without deluxe weights.
-                            return ip.schur_block(&s.op, &rows).unwrap_or_else(|_| Mat::zeros(0, 0));
+                            // A set-up that took this subdomain over may
+                            // hold the block already.
+                            let b = match earlier.iter().position(|(r, _)| *r == rows) {
+                                Some(k) => {
+                                    taken_over.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                                    earlier.swap_remove(k).1
+                                }
+                                // A failure (out of memory) leaves this face
+                                // without deluxe weights.
+                                None => ip.schur_block(&s.op, &rows).unwrap_or_else(|_| Mat::zeros(0, 0)),
+                            };
+                            if let Some(kept) = s.face_blocks.as_mut() {
+                                if b.nrows() > 0 {
+                                    kept.push((rows, b.clone()));
+                                }
+                            }
+                            return b;
                         }
                         // Lumped: the face block of K_E.
                         let mut b = Mat::<f64>::zeros(face.len(), face.len());
@@ -487,6 +504,7 @@ impl DdSolver {
                 blocks
             })
             .collect();
+        self.stats.face_blocks_reused = taken_over.into_inner();
         let mut side: Vec<[Option<&Mat<f64>>; 2]> = vec![[None, None]; self.op.ifaces.len()];
         for (s, b) in self.op.subs.iter().zip(&blocks) {
             for (&(i, is_lo), m) in s.ifaces.iter().zip(b) {
