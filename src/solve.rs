@@ -220,12 +220,7 @@ impl Prepared {
                     status,
                     iterations: out.equilibrium.iterations,
                     history: out.history,
-                    message: (status != Status::Converged)
-                        .then(|| {
-                            out.message
-                                .map(|m| format!("the cg solve of the last cable set stopped: {m}"))
-                        })
-                        .flatten(),
+                    message: out.message.filter(|_| status != Status::Converged),
                     search_direction: None,
                     outer_steps: Some((out.outer_steps, out.setups)),
                     elongations: out.elongations,

@@ -496,3 +496,41 @@ fn contrast_1e8_with_unilateral_cables_is_reported_not_hidden() {
         assert!(differ <= 4, "{subdomains}: {differ} cables off the direct slack set");
     }
 }
+
+/// A cable set that does not settle ends the solve as not converged with a
+/// message that says so (the window is 0 here, so a 16² grid, whose first
+/// all-taut step flips many cables, reaches that ending at once), and the
+/// state it reports is the last iterate; with the default window the same
+/// solve converges to direct's answer.
+#[test]
+fn a_cable_set_that_does_not_settle_is_reported() {
+    use nsdd::direct::DirectSolver;
+    use nsdd::nonsmooth::{NonsmoothCg, NonsmoothOptions};
+    use nsdd::solve::decompose;
+    let scene = grid_scene(16, 0.1, 1.0);
+    let model = Model::from_scene(&scene).unwrap();
+    let options = || NonsmoothOptions {
+        tolerance: 1e-8,
+        max_iterations: 100_000,
+        preconditioner: Default::default(),
+        interface_scaling: Default::default(),
+    };
+    let f = model.load_cases[0].clone();
+    let mut cg = NonsmoothCg::new(&model, decompose(&model, &scene, 4).unwrap(), options()).unwrap();
+    cg.set_unsettled_steps(0);
+    let out = cg.solve(&model, &f, None).unwrap();
+    assert!(!out.converged);
+    assert_eq!(out.outer_steps, 1);
+    let why = out.message.unwrap_or_default();
+    assert!(why.contains("did not settle"), "{why}");
+    assert!(out.equilibrium.u.iter().all(|v| v.is_finite()));
+
+    let mut cg = NonsmoothCg::new(&model, decompose(&model, &scene, 4).unwrap(), options()).unwrap();
+    let out = cg.solve(&model, &f, None).unwrap();
+    assert!(out.converged && out.message.is_none());
+    let d = DirectSolver::new(&model)
+        .unwrap()
+        .solve(&model, &model.rhs(&f))
+        .unwrap();
+    assert!(rel_err(&out.equilibrium.u, &d.u) <= 1e-7);
+}
