@@ -1304,12 +1304,35 @@ impl DdSolver {
     }
 }
 
+/// A small linear grid on 6 subdomains and `cg` options (Dirichlet,
+/// deluxe) for the unit tests of the set-up and the operator.
+#[cfg(test)]
+pub(crate) fn cg_test_problem() -> (Model, Decomposition, DdOptions) {
+    use crate::generate::{grid, GridParams};
+    let scene = grid(&GridParams {
+        nx: 8,
+        ny: 6,
+        unilateral: false,
+        ..Default::default()
+    });
+    let model = Model::from_scene(&scene).unwrap();
+    let dec = crate::solve::decompose(&model, &scene, 6).unwrap();
+    let opts = DdOptions {
+        coarse: true,
+        tolerance: 1e-8,
+        max_iterations: 10,
+        search_direction: SearchDirection::Auto,
+        krylov: true,
+        preconditioner: Preconditioner::Dirichlet,
+        interface_scaling: InterfaceScaling::Deluxe,
+    };
+    (model, dec, opts)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::generate::{grid, GridParams};
     use crate::outcome::Status;
-    use crate::solve::decompose;
 
     /// A set-up that takes every subdomain over from an earlier one of the
     /// same structure (operators, interior factors, deluxe face blocks)
@@ -1319,23 +1342,8 @@ mod tests {
     /// the iterates.
     #[test]
     fn a_pooled_set_up_solves_with_the_bits_of_a_fresh_one() {
-        let scene = grid(&GridParams {
-            nx: 12,
-            ny: 9,
-            unilateral: false,
-            ..Default::default()
-        });
-        let model = Model::from_scene(&scene).unwrap();
-        let dec = decompose(&model, &scene, 6).unwrap();
-        let opts = DdOptions {
-            coarse: true,
-            tolerance: 1e-10,
-            max_iterations: 200,
-            search_direction: SearchDirection::Auto,
-            krylov: true,
-            preconditioner: Preconditioner::Dirichlet,
-            interface_scaling: InterfaceScaling::Deluxe,
-        };
+        let (model, dec, mut opts) = cg_test_problem();
+        (opts.tolerance, opts.max_iterations) = (1e-10, 200);
         let f = model.load_cases[0].clone();
         let mut fresh = DdSolver::new_pooled(&model, &dec, opts.clone(), Vec::new(), Placement::Process).unwrap();
         assert_eq!(fresh.stats.interiors_reused, 0);

@@ -492,12 +492,7 @@ mod tests {
     //! (everything else NaN, as in an MPI rank's ghost buffers) and sums in
     //! its own loop gives the same bits as [`Threads`].
     use super::*;
-    use crate::dd::{DdOptions, DdSolver};
-    use crate::generate::{grid, GridParams};
-    use crate::model::Model;
-    use crate::scaling::InterfaceScaling;
-    use crate::settings::{Preconditioner, SearchDirection};
-    use crate::solve::decompose;
+    use crate::dd::DdSolver;
 
     struct Ghosts {
         inner: crate::comm::Seam,
@@ -581,23 +576,7 @@ mod tests {
     }
 
     fn solver() -> DdSolver {
-        let scene = grid(&GridParams {
-            nx: 8,
-            ny: 6,
-            unilateral: false,
-            ..Default::default()
-        });
-        let model = Model::from_scene(&scene).unwrap();
-        let dec = decompose(&model, &scene, 6).unwrap();
-        let opts = DdOptions {
-            coarse: true,
-            tolerance: 1e-8,
-            max_iterations: 10,
-            search_direction: SearchDirection::Auto,
-            krylov: true,
-            preconditioner: Preconditioner::Dirichlet,
-            interface_scaling: InterfaceScaling::Deluxe,
-        };
+        let (model, dec, opts) = crate::dd::cg_test_problem();
         DdSolver::new(&model, &dec, opts).unwrap()
     }
 
