@@ -884,40 +884,26 @@ impl DdSolver {
                 solver.op.interface_sizes(),
                 solver.op.subs.iter().map(|s| s.v.len()),
             ));
-            if solver.opts.preconditioner != Preconditioner::Dirichlet {
-                // Taken-over interiors serve the Dirichlet preconditioner only
-                // (the lumped deluxe blocks are of `K_E`).
-                for st in solver.op.subs.iter_mut() {
+            // A taken-over interior factor stays where the interface is the
+            // same, and serves the Dirichlet preconditioner only (the lumped
+            // deluxe blocks are of `K_E`); the face blocks go with it.
+            let dirichlet = solver.opts.preconditioner == Preconditioner::Dirichlet;
+            for st in solver.op.subs.iter_mut() {
+                let n = st.op.n();
+                if !(dirichlet && st.interior.as_ref().is_some_and(|ip| ip.fits(n, &st.iface_dofs))) {
                     st.interior = None;
                     if let Some(b) = st.face_blocks.as_mut() {
                         b.clear();
                     }
                 }
             }
-            if solver.opts.preconditioner == Preconditioner::Dirichlet {
+            if dirichlet {
                 let t = Instant::now();
-                solver.stats.interiors_reused = solver
-                    .op
-                    .subs
-                    .iter()
-                    .filter(|st| {
-                        st.interior
-                            .as_ref()
-                            .is_some_and(|ip| ip.fits(st.op.n(), &st.iface_dofs))
-                    })
-                    .count();
+                solver.stats.interiors_reused = solver.op.subs.iter().filter(|st| st.interior.is_some()).count();
                 let r = solver.op.subs.par_iter_mut().try_for_each(|st| -> Result<()> {
-                    let n = st.op.n();
-                    st.interior = match st.interior.take().filter(|ip| ip.fits(n, &st.iface_dofs)) {
-                        Some(ip) => Some(ip),
-                        None => {
-                            // The face blocks were of the old interface.
-                            if let Some(b) = st.face_blocks.as_mut() {
-                                b.clear();
-                            }
-                            Some(InteriorProblem::new(&st.op, &st.iface_dofs)?)
-                        }
-                    };
+                    if st.interior.is_none() {
+                        st.interior = Some(InteriorProblem::new(&st.op, &st.iface_dofs)?);
+                    }
                     Ok(())
                 });
                 solver.op.comm.agree(r)?;
