@@ -110,7 +110,7 @@ pub const EARLY_STOP_ITERATIONS: usize = 15;
 pub const EARLY_STOP_VIOLATION: f64 = 0.1;
 
 /// Outer steps a solve may go without cutting its fewest flips so far by
-/// a tenth ([`Settling`]) before it ends as `stalled`: the cable set is
+/// a tenth before it ends as `stalled`: the cable set is
 /// not settling. On the nonsmooth 30³ tower with 64 subdomains the set
 /// flipped 4 000-11 000 cables per step for 62 steps (15 minutes, still
 /// going) without settling; the grids cut their flips by a third or more
@@ -120,7 +120,7 @@ pub const UNSETTLED_STEPS: usize = 30;
 
 /// Whether the cable set is still settling (see [`UNSETTLED_STEPS`]).
 #[derive(Debug, Clone)]
-pub struct Settling {
+struct Settling {
     fewest: usize,
     at: usize,
     window: usize,
@@ -128,7 +128,7 @@ pub struct Settling {
 
 impl Settling {
     /// A solve that may go `window` outer steps without progress.
-    pub fn new(window: usize) -> Settling {
+    fn new(window: usize) -> Settling {
         Settling {
             fewest: usize::MAX,
             at: 0,
@@ -139,7 +139,7 @@ impl Settling {
     /// Records the flips (violations) found after outer step `step`;
     /// `false` once `window` steps have passed without a count below
     /// 0.9 × the fewest before.
-    pub fn record(&mut self, step: usize, flips: usize) -> bool {
+    fn record(&mut self, step: usize, flips: usize) -> bool {
         if (flips as f64) < 0.9 * self.fewest as f64 {
             self.fewest = flips;
             self.at = step;
@@ -148,7 +148,7 @@ impl Settling {
     }
 
     /// The fewest flips of a step so far.
-    pub fn fewest(&self) -> usize {
+    fn fewest(&self) -> usize {
         self.fewest
     }
 }

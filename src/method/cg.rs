@@ -5,7 +5,7 @@
 
 use crate::cg_stopping::{self, CgStopping};
 use crate::comm::Communicator;
-use crate::dd::DdSolver;
+use crate::dd::{DdSolver, FaceBlock};
 use crate::error::Result;
 use crate::method::stopping::{finish, stalled};
 use crate::outcome::{Outcome, Status};
@@ -448,7 +448,8 @@ impl DdSolver {
         // face dof: `S_E e_l` restricted to the face.
         let ifaces = &self.op.ifaces;
         let taken_over = std::sync::atomic::AtomicUsize::new(0);
-        let blocks: Vec<Vec<Mat<f64>>> = self
+        // Each face's rows (local, empty for the lumped blocks) and block.
+        let blocks: Vec<Vec<FaceBlock>> = self
             .op
             .subs
             .par_iter_mut()
@@ -477,12 +478,7 @@ impl DdSolver {
                                 // without deluxe weights.
                                 None => ip.schur_block(&s.op, &rows).unwrap_or_else(|_| Mat::zeros(0, 0)),
                             };
-                            if let Some(kept) = s.face_blocks.as_mut() {
-                                if b.nrows() > 0 {
-                                    kept.push((rows, b.clone()));
-                                }
-                            }
-                            return b;
+                            return (rows, b);
                         }
                         // Lumped: the face block of K_E.
                         let mut b = Mat::<f64>::zeros(face.len(), face.len());
@@ -495,7 +491,7 @@ impl DdSolver {
                                 b[(m, k)] = y[idx[g as usize] as usize];
                             }
                         }
-                        b
+                        (Vec::new(), b)
                     })
                     .collect();
                 if let Some(ip) = s.interior.as_mut() {
@@ -507,7 +503,7 @@ impl DdSolver {
         self.stats.face_blocks_reused = taken_over.into_inner();
         let mut side: Vec<[Option<&Mat<f64>>; 2]> = vec![[None, None]; self.op.ifaces.len()];
         for (s, b) in self.op.subs.iter().zip(&blocks) {
-            for (&(i, is_lo), m) in s.ifaces.iter().zip(b) {
+            for (&(i, is_lo), (_, m)) in s.ifaces.iter().zip(b) {
                 side[i][usize::from(!is_lo)] = Some(m);
             }
         }
@@ -554,6 +550,13 @@ impl DdSolver {
                 _ => DeluxeFace::default(),
             })
             .collect();
+        // A set-up that keeps its Schur face blocks for the next one
+        // (`DdSolver::new_pooled`) takes them over here, without a copy.
+        for (s, b) in self.op.subs.iter_mut().zip(blocks) {
+            if let (Some(kept), true) = (s.face_blocks.as_mut(), s.interior.is_some()) {
+                kept.extend(b.into_iter().filter(|(_, m)| m.nrows() > 0));
+            }
+        }
     }
 
     /// The energies of the CG stopping test ([`crate::cg_stopping`]) for
