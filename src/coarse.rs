@@ -340,8 +340,8 @@ impl CoarseProblem {
             return Err(Error::Numerical("the coarse operator is not finite".into()));
         }
         let lscale = typical_scale(&ldiag);
-        // Rows whose diagonal is not positive (a macro force acting on
-        // nothing) are measured against the typical one.
+        // A diagonal entry below 1e-12 of the typical one (or not positive)
+        // is floored there, so that its row is not weighted without bound.
         let row_scale: Vec<f64> = ldiag
             .iter()
             .map(|&d| 1.0 / d.max(1e-12 * lscale).max(f64::MIN_POSITIVE).sqrt())
