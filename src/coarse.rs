@@ -392,29 +392,54 @@ impl CoarseProblem {
             Error::Numerical("the coarse problem could not be factored even with the largest regularisation".into())
         })?;
 
-        // S = Gᵀ L_γ⁻¹ G, in batches of columns.
-        let mut s = Mat::<f64>::zeros(na, na);
-        let mut block = vec![0.0; nf * SCHUR_BATCH];
-        let mut j0 = 0;
-        while j0 < na {
-            let w = (na - j0).min(SCHUR_BATCH);
-            let blk = &mut block[..nf * w];
-            blk.iter_mut().for_each(|v| *v = 0.0);
-            for c in 0..w {
-                let j = j0 + c;
-                for k in g_ptr[j]..g_ptr[j + 1] {
-                    blk[c * nf + g_row[k]] = g_val[k];
+        // S = Gᵀ L_γ⁻¹ G, in batches of columns, the batches split between
+        // two solvers (the factor and a copy of it) on the rayon pool: with
+        // 1 600 kernel modes on the 30³ tower this was 2.3 s of each set-up.
+        // Every batch is solved as it would be alone, so S has the same bits
+        // whatever the split.
+        let starts: Vec<usize> = (0..na).step_by(SCHUR_BATCH).collect();
+        let (g_ptr_r, g_row_r, g_val_r) = (&g_ptr, &g_row, &g_val);
+        let schur_columns = |solver: &mut SparseCholesky, starts: &[usize]| -> Vec<f64> {
+            let mut cols = Vec::with_capacity(starts.len() * SCHUR_BATCH * na);
+            let mut block = vec![0.0; nf * SCHUR_BATCH];
+            for &j0 in starts {
+                let w = (na - j0).min(SCHUR_BATCH);
+                let blk = &mut block[..nf * w];
+                blk.iter_mut().for_each(|v| *v = 0.0);
+                for c in 0..w {
+                    let j = j0 + c;
+                    for k in g_ptr_r[j]..g_ptr_r[j + 1] {
+                        blk[c * nf + g_row_r[k]] = g_val_r[k];
+                    }
+                }
+                solver.solve_columns(blk, w);
+                for c in 0..w {
+                    let y = &blk[c * nf..(c + 1) * nf];
+                    cols.extend((0..na).map(|i| {
+                        (g_ptr_r[i]..g_ptr_r[i + 1])
+                            .map(|k| g_val_r[k] * y[g_row_r[k]])
+                            .sum::<f64>()
+                    }));
                 }
             }
-            factor.solve_columns(blk, w);
-            for c in 0..w {
-                let y = &blk[c * nf..(c + 1) * nf];
-                for i in 0..na {
-                    s[(i, j0 + c)] = (g_ptr[i]..g_ptr[i + 1]).map(|k| g_val[k] * y[g_row[k]]).sum();
-                }
+            cols
+        };
+        let half = starts.len() / 2;
+        let mut twin = if half > 0 { factor.solver_copy().ok() } else { None };
+        let cols = match twin.as_mut() {
+            Some(twin) => {
+                let (mut a, b) = rayon::join(
+                    || schur_columns(&mut factor, &starts[..half]),
+                    || schur_columns(twin, &starts[half..]),
+                );
+                a.extend(b);
+                a
             }
-            j0 += w;
-        }
+            None => schur_columns(&mut factor, &starts),
+        };
+        drop(twin);
+        let s = Mat::from_fn(na, na, |i, j| cols[j * na + i]);
+        drop(cols);
         let s_inv = if na > 0 {
             let sym = Mat::from_fn(na, na, |i, j| 0.5 * (s[(i, j)] + s[(j, i)]));
             let llt = sym

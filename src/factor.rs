@@ -522,6 +522,24 @@ impl SparseCholesky {
         Ok(())
     }
 
+    /// A second solver of the same factor (its values copied, its own
+    /// scratch), for solves on another thread. Same bits as this one.
+    pub fn solver_copy(&self) -> Result<Self, FactorError> {
+        let req = self.symbolic.solve_in_place_scratch::<f64>(self.scratch_cols, Par::Seq);
+        Ok(SparseCholesky {
+            n: self.n,
+            symbolic: self.symbolic.clone(),
+            pattern: self.pattern.clone(),
+            l_values: self.l_values.clone(),
+            scratch: MemBuffer::try_new(req).map_err(|_| FactorError::Internal("out of memory".into()))?,
+            scratch_cols: self.scratch_cols,
+            perm_buf: perm_buffer(&self.symbolic, self.scratch_cols),
+            ordering: self.ordering,
+            par: self.par,
+            timings: self.timings,
+        })
+    }
+
     /// Solves for a column-major block stored in a slice of `n * k` values.
     pub fn solve_columns(&mut self, data: &mut [f64], k: usize) {
         let n = self.n;
