@@ -398,7 +398,6 @@ impl CoarseProblem {
         // Every batch is solved as it would be alone, so S has the same bits
         // whatever the split.
         let starts: Vec<usize> = (0..na).step_by(SCHUR_BATCH).collect();
-        let (g_ptr_r, g_row_r, g_val_r) = (&g_ptr, &g_row, &g_val);
         let schur_columns = |solver: &mut SparseCholesky, starts: &[usize]| -> Vec<f64> {
             let mut cols = Vec::with_capacity(starts.len() * SCHUR_BATCH * na);
             let mut block = vec![0.0; nf * SCHUR_BATCH];
@@ -408,18 +407,14 @@ impl CoarseProblem {
                 blk.iter_mut().for_each(|v| *v = 0.0);
                 for c in 0..w {
                     let j = j0 + c;
-                    for k in g_ptr_r[j]..g_ptr_r[j + 1] {
-                        blk[c * nf + g_row_r[k]] = g_val_r[k];
+                    for k in g_ptr[j]..g_ptr[j + 1] {
+                        blk[c * nf + g_row[k]] = g_val[k];
                     }
                 }
                 solver.solve_columns(blk, w);
                 for c in 0..w {
                     let y = &blk[c * nf..(c + 1) * nf];
-                    cols.extend((0..na).map(|i| {
-                        (g_ptr_r[i]..g_ptr_r[i + 1])
-                            .map(|k| g_val_r[k] * y[g_row_r[k]])
-                            .sum::<f64>()
-                    }));
+                    cols.extend((0..na).map(|i| (g_ptr[i]..g_ptr[i + 1]).map(|k| g_val[k] * y[g_row[k]]).sum::<f64>()));
                 }
             }
             cols
