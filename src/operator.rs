@@ -21,7 +21,7 @@ use crate::coarse::CoarseProblem;
 use crate::comm::{Communicator, Threads};
 use crate::dd::{IfaceState, SubState};
 use crate::kernels::{self, Side};
-use crate::scaling::{self, DeluxeFace, EntryWeights};
+use crate::scaling::{self, DeluxeBlock, EntryWeights};
 use rayon::prelude::*;
 
 /// The set-up interface operator (see the module documentation), generic
@@ -247,7 +247,7 @@ impl<C: Communicator> InterfaceOperator<C> {
         &mut self,
         r: &[Vec<f64>],
         w: &[EntryWeights],
-        deluxe: &mut [DeluxeFace],
+        deluxe: &mut [Vec<DeluxeBlock>],
         sl: &mut [Vec<f64>],
         sh: &mut [Vec<f64>],
         z: &mut [Vec<f64>],
@@ -262,7 +262,7 @@ impl<C: Communicator> InterfaceOperator<C> {
                     *a = wl * r;
                     *b = wh * r;
                 }
-                if !dx.face.is_empty() {
+                for dx in dx {
                     dx.scale(r, sl, sh);
                 }
             });
@@ -295,19 +295,19 @@ impl<C: Communicator> InterfaceOperator<C> {
                 scaling::scaled_jump_runs(cz, lo, &w[i].lo, hi, &w[i].hi, &ifaces[i].runs);
             },
         );
-        // The deluxe faces: `D_hiᵀ y_lo − D_loᵀ y_hi` from the same traces.
+        // The deluxe blocks: `D_hiᵀ y_lo − D_loᵀ y_hi` from the same traces.
         self.comm.neighbour_traces(
             &self.subs,
             |s| &s.r,
             deluxe,
             |i, dx, lo, hi| {
-                if !dx.face.is_empty() {
+                for dx in dx {
                     dx.face_jump(lo, &ifaces[i].lo_idx, hi, &ifaces[i].hi_idx);
                 }
             },
         );
         z.par_iter_mut().zip(deluxe.par_iter()).for_each(|(cz, dx)| {
-            if !dx.face.is_empty() {
+            for dx in dx {
                 dx.write_face(cz);
             }
         });
@@ -645,9 +645,10 @@ mod tests {
         local.force_stage(&mut fa, 0.3);
         ghost.force_stage(&mut fb, 0.3);
         assert!(fa.iter().zip(&fb).all(|(a, b)| same(a, b)));
-        // The preconditioner with the set-up's weights: deluxe on the faces,
-        // pointwise at the cross points.
-        assert!(ws.deluxe.iter().any(|d| !d.face.is_empty()));
+        // The preconditioner with the set-up's weights: deluxe on the faces
+        // and at the cross points.
+        assert!(ws.deluxe.iter().flatten().any(|d| d.d_lo.is_empty()));
+        assert!(ws.deluxe.iter().flatten().any(|d| !d.d_lo.is_empty()));
         let (mut da, mut db) = (ws.deluxe.clone(), ws.deluxe.clone());
         let (mut sla, mut sha, mut slb, mut shb) = (vec_of(0), vec_of(0), vec_of(0), vec_of(0));
         let r = vec_of(3);

@@ -27,10 +27,15 @@
 //! multiplicity elsewhere: 563 iterations on the tower, 120 on that grid.
 //!
 //! The default, [`InterfaceScaling::Deluxe`], replaces the pointwise
-//! weights on each interface's face by the dense ones of [`DeluxeFace`],
-//! built from the two subdomains' Schur complements: 60 iterations on that
-//! tower, 20/29/18 on the 24² grid with 4/16/64 subdomains (52/55/37 with
-//! contrast). Cross points keep the contrast weights.
+//! weights by the dense ones of [`DeluxeBlock`], built from the Schur
+//! complements of the subdomains sharing a set of dofs: on each
+//! interface's face (dofs of two subdomains), and on each edge (dofs
+//! shared by the same three or more subdomains, [`Edges`]): 60 iterations
+//! on that tower, 16/23/16 on the 24² grid with 4/16/64 subdomains
+//! (52/55/37 with contrast; 20/29/18 when the cross points kept the
+//! contrast weights), 22/22 on a uniform 30³ tower with 16/64 subdomains
+//! (44/82 with deluxe on the faces only). The contrast weights remain
+//! where a block's weights cannot be formed.
 
 use crate::kernels::{Run, Side};
 use faer::{Mat, MatRef};
@@ -52,8 +57,10 @@ pub enum InterfaceScaling {
     /// Deluxe: on the face dofs of each interface (those shared by its two
     /// subdomains only) the dense weights `D_hi = (S_lo + S_hi)⁻¹ S_hi` and
     /// `D_lo = I − D_hi` of the face blocks of the subdomains' Schur
-    /// complements ([`DeluxeFace`]); the [`InterfaceScaling::Contrast`]
-    /// weights at cross points. The default.
+    /// complements, and on each edge `E` (dofs shared by the same `m ≥ 3`
+    /// subdomains) `D_j = (Σ_i S_i^E)⁻¹ S_j^E` ([`DeluxeBlock`]); the
+    /// [`InterfaceScaling::Contrast`] weights where a block cannot be
+    /// formed. The default.
     #[default]
     Deluxe,
 }
@@ -230,42 +237,55 @@ pub fn scaled_jump_runs(out: &mut [f64], lo: &[f64], w_lo: &[f64], hi: &[f64], w
     }
 }
 
-/// Deluxe weights of the face of one interface: the entries whose dof is
-/// shared by the interface's two subdomains only. With `S_lo`, `S_hi` the
-/// face blocks of the two subdomains' Schur complements (the force each
-/// side needs to hold a displacement of the face, the rest of its interface
-/// fixed), the average of the two sides' displacements is `ū = (S_lo +
-/// S_hi)⁻¹ (S_lo u_lo + S_hi u_hi)`, so `u_lo − ū = D_hi (u_lo − u_hi)` with
-/// `D_hi = (S_lo + S_hi)⁻¹ S_hi`: the scaled jump operator is `B_D,lo = D_hiᵀ`
-/// and `B_D,hi = D_loᵀ = (I − D_hi)ᵀ` on the face. Unlike a pointwise
-/// weight, it accounts for how a soft cable side and a stiff bar side resist
-/// a displacement *mode* of the face (a shear of the bar frame), not a dof.
+/// Deluxe weights of one block of an interface's entries.
+///
+/// **Faces.** The entries whose dof is shared by the interface's two
+/// subdomains only. With `S_lo`, `S_hi` the face blocks of the two
+/// subdomains' Schur complements (the force each side needs to hold a
+/// displacement of the face, the rest of its interface fixed), the average
+/// of the two sides' displacements is `ū = (S_lo + S_hi)⁻¹ (S_lo u_lo + S_hi
+/// u_hi)`, so `u_lo − ū = D_hi (u_lo − u_hi)` with `D_hi = (S_lo + S_hi)⁻¹
+/// S_hi`: the scaled jump operator is `B_D,lo = D_hiᵀ` and `B_D,hi = D_loᵀ =
+/// (I − D_hi)ᵀ` on the face. Unlike a pointwise weight, it accounts for how a
+/// soft cable side and a stiff bar side resist a displacement *mode* of the
+/// face (a shear of the bar frame), not a dof.
+///
+/// **Edges.** A set `E` of dofs shared by the same `m ≥ 3` subdomains (an
+/// edge or a vertex of the partition) appears on each of their `m(m−1)/2`
+/// pair interfaces. The average is `ū = Σ_j D_j u_j` with `D_j = (Σ_i
+/// S_i^E)⁻¹ S_j^E`, and `u_k − ū = Σ_{l≠k} D_l (u_k − u_l)` (the `D_j` sum to
+/// `I`): on the pair `(k, l)` the lo side `k` takes `D_l` and the hi side `l`
+/// takes `D_k`, which need not add up to `I` ([`DeluxeBlock::edge_weights`]).
+/// Each pair needs only its own two traces, like a face.
 #[derive(Debug, Clone, Default)]
-pub struct DeluxeFace {
-    /// Entry indices (in the interface) of the face, increasing.
-    pub face: Vec<u32>,
-    /// `D_hi`, `face.len()²`, column-major.
+pub struct DeluxeBlock {
+    /// Entry indices (in the interface) of the block.
+    pub entries: Vec<u32>,
+    /// `D_hi`, `entries.len()²`, column-major.
     pub d: Vec<f64>,
+    /// `D_lo`, column-major; empty on a face, where `D_lo = I − D_hi`.
+    pub d_lo: Vec<f64>,
     /// Scratch of the applications (no allocation per iteration).
     x: Vec<f64>,
+    x2: Vec<f64>,
     y: Vec<f64>,
 }
 
-/// Relative eigenvalue of `S_lo + S_hi` below which a face direction is
-/// taken as held by neither side (mechanisms on both): it is split evenly.
+/// Relative eigenvalue of `Σ S_j` below which a block direction is taken
+/// as held by no side (mechanisms on all): it is split evenly.
 const DELUXE_PINV_RTOL: f64 = 1e-12;
 
-/// Smallest Cholesky pivot of `S_lo + S_hi`, relative to the largest, for
-/// which [`DeluxeFace::new`] takes the Cholesky path; below it the
-/// eigendecomposition sorts out the directions neither side holds.
+/// Smallest Cholesky pivot of `Σ S_j`, relative to the largest, for which
+/// the weights take the Cholesky path; below it the eigendecomposition
+/// sorts out the directions no side holds.
 const DELUXE_CHOLESKY_PIVOT_RATIO: f64 = 1e-8;
 
-/// Smallest eigenvalue of `S_lo + S_hi` (estimated), relative to its
-/// trace, for which [`DeluxeFace::new`] takes the Cholesky path: a margin
-/// of 100 over [`DELUXE_PINV_RTOL`] for the estimate.
+/// Smallest eigenvalue of `Σ S_j` (estimated), relative to its trace, for
+/// which the weights take the Cholesky path: a margin of 100 over
+/// [`DELUXE_PINV_RTOL`] for the estimate.
 const DELUXE_CHOLESKY_EIGEN_RATIO: f64 = 1e-10;
 
-/// Faces of at least this many dofs take the Cholesky path.
+/// Blocks of at least this many dofs take the Cholesky path.
 const DELUXE_CHOLESKY_MIN_DOFS: usize = 96;
 
 /// Inverse-iteration steps of that estimate.
@@ -279,152 +299,308 @@ fn finite_column_major(d: &Mat<f64>) -> Option<Vec<f64>> {
     data.iter().all(|v| v.is_finite()).then_some(data)
 }
 
-impl DeluxeFace {
-    /// The face `face` (entry indices) with the face blocks `s_lo`, `s_hi`
-    /// (symmetric, `face.len()` square). `D_hi = (S_lo + S_hi)⁺ S_hi + ½ N Nᵀ`
-    /// with `N` the null space of the sum: directions neither side resists
-    /// get the multiplicity weights. `None` if the eigensolver fails.
-    pub fn new(face: Vec<u32>, s_lo: MatRef<'_, f64>, s_hi: MatRef<'_, f64>) -> Option<DeluxeFace> {
-        let n = face.len();
-        let sum = Mat::from_fn(n, n, |i, j| {
-            0.5 * (s_lo[(i, j)] + s_lo[(j, i)] + s_hi[(i, j)] + s_hi[(j, i)])
-        });
-        // The usual case: the sum is positive definite and a Cholesky
-        // factorization gives D_hi in about 2.3 n³ flops, against about
-        // 15 n³ for the eigendecomposition and its products (3D faces of
-        // 1 000+ dofs spent a sixth of the 30³ tower's set-up there). Any
-        // finite D keeps the preconditioner symmetric positive, so round-off
-        // here costs iterations at worst, never correctness.
-        // Small faces keep the eigendecomposition, whose cost is negligible
-        // there (and whose rounding the results of small scenes were
-        // measured with).
-        let fast = if n >= DELUXE_CHOLESKY_MIN_DOFS {
-            Self::by_cholesky(&sum, s_hi)
-        } else {
-            None
-        };
-        let d = fast.or_else(|| Self::by_eigen(&sum, s_hi))?;
-        Some(DeluxeFace {
-            face,
-            d,
-            x: vec![0.0; n],
-            y: vec![0.0; n],
-        })
-    }
+/// `(Σ S_j)⁺ rhs + share · N Nᵀ` on each square block of `rhs`, column-major
+/// (`N` the null space of `sum`), by Cholesky on large well-conditioned sums
+/// and by eigendecomposition otherwise. Any finite result keeps the
+/// preconditioner symmetric positive, so round-off here costs iterations
+/// at worst, never correctness.
+fn deluxe_solve(sum: &Mat<f64>, rhs: MatRef<'_, f64>, share: f64) -> Option<Vec<f64>> {
+    // The usual large case: the sum is positive definite and a Cholesky
+    // factorization gives the weights in about 2.3 n³ flops a block, against
+    // about 15 n³ for the eigendecomposition and its products (3D faces of
+    // 1 000+ dofs spent a sixth of the 30³ tower's set-up there). Small
+    // blocks keep the eigendecomposition, whose cost is negligible there
+    // (and whose rounding the results of small scenes were measured with).
+    let fast = if sum.nrows() >= DELUXE_CHOLESKY_MIN_DOFS {
+        by_cholesky(sum, rhs)
+    } else {
+        None
+    };
+    fast.or_else(|| by_eigen(sum, rhs, share))
+}
 
-    /// `(S_lo + S_hi)⁻¹ S_hi` by Cholesky, column-major; `None` when the sum
-    /// is not clearly positive definite (a pivot below
-    /// [`DELUXE_CHOLESKY_PIVOT_RATIO`] of the largest).
-    fn by_cholesky(sum: &Mat<f64>, s_hi: MatRef<'_, f64>) -> Option<Vec<f64>> {
-        use faer::linalg::solvers::Solve;
-        let n = sum.nrows();
-        let llt = sum.llt(faer::Side::Lower).ok()?;
-        let l = llt.L();
-        let pivots = (0..n).map(|k| l[(k, k)] * l[(k, k)]);
-        let (lo, hi) = pivots.fold((f64::INFINITY, 0.0f64), |(a, b), p| (a.min(p), b.max(p)));
-        if !(lo > DELUXE_CHOLESKY_PIVOT_RATIO * hi) {
+/// `sum⁻¹ rhs` by Cholesky, column-major; `None` when the sum is not
+/// clearly positive definite (a pivot below [`DELUXE_CHOLESKY_PIVOT_RATIO`]
+/// of the largest).
+fn by_cholesky(sum: &Mat<f64>, rhs: MatRef<'_, f64>) -> Option<Vec<f64>> {
+    use faer::linalg::solvers::Solve;
+    let n = sum.nrows();
+    let llt = sum.llt(faer::Side::Lower).ok()?;
+    let l = llt.L();
+    let pivots = (0..n).map(|k| l[(k, k)] * l[(k, k)]);
+    let (lo, hi) = pivots.fold((f64::INFINITY, 0.0f64), |(a, b), p| (a.min(p), b.max(p)));
+    if !(lo > DELUXE_CHOLESKY_PIVOT_RATIO * hi) {
+        return None;
+    }
+    // Pivots bound the smallest eigenvalue only from above; inverse
+    // iteration (2n² flops a step) estimates it, so that a sum with
+    // directions the eigendecomposition would split evenly (below
+    // DELUXE_PINV_RTOL) goes that way instead of being inverted.
+    let trace: f64 = (0..n).map(|k| sum[(k, k)]).sum();
+    let mut seed = 0x9e37_79b9_7f4a_7c15u64;
+    let mut x = Mat::<f64>::from_fn(n, 1, |_, _| {
+        seed = seed
+            .wrapping_mul(6_364_136_223_846_793_005)
+            .wrapping_add(1_442_695_040_888_963_407);
+        (seed >> 11) as f64 / (1u64 << 53) as f64 - 0.5
+    });
+    for _ in 0..DELUXE_INVERSE_ITERATIONS {
+        let norm = x.norm_l2();
+        if !(norm > 0.0) || !norm.is_finite() {
             return None;
         }
-        // Pivots bound the smallest eigenvalue only from above; inverse
-        // iteration (2n² flops a step) estimates it, so that a sum with
-        // directions the eigendecomposition would split evenly (below
-        // DELUXE_PINV_RTOL) goes that way instead of being inverted.
-        let trace: f64 = (0..n).map(|k| sum[(k, k)]).sum();
-        let mut seed = 0x9e37_79b9_7f4a_7c15u64;
-        let mut x = Mat::<f64>::from_fn(n, 1, |_, _| {
-            seed = seed
-                .wrapping_mul(6_364_136_223_846_793_005)
-                .wrapping_add(1_442_695_040_888_963_407);
-            (seed >> 11) as f64 / (1u64 << 53) as f64 - 0.5
-        });
-        for _ in 0..DELUXE_INVERSE_ITERATIONS {
-            let norm = x.norm_l2();
-            if !(norm > 0.0) || !norm.is_finite() {
-                return None;
-            }
-            x = llt.solve(&x * faer::Scale(1.0 / norm));
-        }
-        let x = &x * faer::Scale(1.0 / x.norm_l2());
-        let rayleigh = (x.transpose() * sum * &x)[(0, 0)];
-        if !(rayleigh > DELUXE_CHOLESKY_EIGEN_RATIO * trace) {
-            return None;
-        }
-        finite_column_major(&llt.solve(s_hi))
+        x = llt.solve(&x * faer::Scale(1.0 / norm));
     }
+    let x = &x * faer::Scale(1.0 / x.norm_l2());
+    let rayleigh = (x.transpose() * sum * &x)[(0, 0)];
+    if !(rayleigh > DELUXE_CHOLESKY_EIGEN_RATIO * trace) {
+        return None;
+    }
+    finite_column_major(&llt.solve(rhs))
+}
 
-    /// `(S_lo + S_hi)⁺ S_hi + ½ N Nᵀ` by eigendecomposition, column-major.
-    fn by_eigen(sum: &Mat<f64>, s_hi: MatRef<'_, f64>) -> Option<Vec<f64>> {
-        let n = sum.nrows();
-        let evd = sum.self_adjoint_eigen(faer::Side::Lower).ok()?;
-        let (u, s) = (evd.U(), evd.S().column_vector());
-        let smax = (0..n).map(|k| s[k].abs()).fold(0.0f64, f64::max);
-        let cut = DELUXE_PINV_RTOL * smax;
-        // (S_lo + S_hi)⁺ S_hi = U Λ⁺ Uᵀ S_hi, plus ½ U₀ U₀ᵀ.
-        let ut_shi = u.transpose() * s_hi;
-        let mut scaled = Mat::<f64>::zeros(n, n);
-        let mut null = Mat::<f64>::zeros(n, n);
+/// `sum⁺ rhs + share · N Nᵀ` (on each square block of `rhs`) by
+/// eigendecomposition, column-major.
+fn by_eigen(sum: &Mat<f64>, rhs: MatRef<'_, f64>, share: f64) -> Option<Vec<f64>> {
+    let n = sum.nrows();
+    let evd = sum.self_adjoint_eigen(faer::Side::Lower).ok()?;
+    let (u, s) = (evd.U(), evd.S().column_vector());
+    let smax = (0..n).map(|k| s[k].abs()).fold(0.0f64, f64::max);
+    let cut = DELUXE_PINV_RTOL * smax;
+    // sum⁺ rhs = U Λ⁺ Uᵀ rhs, plus share · U₀ U₀ᵀ.
+    let ut_rhs = u.transpose() * rhs;
+    let mut scaled = Mat::<f64>::zeros(n, n);
+    let mut null = Mat::<f64>::zeros(n, n);
+    let blocks = rhs.ncols() / n.max(1);
+    let mut out = Vec::with_capacity(n * rhs.ncols());
+    for b in 0..blocks {
         for k in 0..n {
             if s[k] > cut {
                 for j in 0..n {
-                    scaled[(k, j)] = ut_shi[(k, j)] / s[k];
+                    scaled[(k, j)] = ut_rhs[(k, b * n + j)] / s[k];
                 }
             } else {
                 for j in 0..n {
-                    null[(k, j)] = 0.5 * u[(j, k)];
+                    null[(k, j)] = share * u[(j, k)];
                 }
             }
         }
-        finite_column_major(&(u * scaled + u * null))
+        out.extend(finite_column_major(&(u * &scaled + u * &null))?);
+    }
+    Some(out)
+}
+
+impl DeluxeBlock {
+    /// The face `entries` (entry indices) with the face blocks `s_lo`,
+    /// `s_hi` (symmetric, `entries.len()` square). `D_hi = (S_lo + S_hi)⁺
+    /// S_hi + ½ N Nᵀ` with `N` the null space of the sum: directions neither
+    /// side resists get the multiplicity weights. `None` if the eigensolver
+    /// fails.
+    pub fn face(entries: Vec<u32>, s_lo: MatRef<'_, f64>, s_hi: MatRef<'_, f64>) -> Option<DeluxeBlock> {
+        let n = entries.len();
+        let sum = Mat::from_fn(n, n, |i, j| {
+            0.5 * (s_lo[(i, j)] + s_lo[(j, i)] + s_hi[(i, j)] + s_hi[(j, i)])
+        });
+        let d = deluxe_solve(&sum, s_hi, 0.5)?;
+        Some(DeluxeBlock::new(entries, Vec::new(), d))
     }
 
-    /// `B_D,loᵀ r` and `B_D,hiᵀ r` on the face: `lo[f] = (D_hi r_F)`, `hi[f] =
-    /// r_F − D_hi r_F` (the other entries are left alone). No allocation.
-    pub fn scale(&mut self, r: &[f64], lo: &mut [f64], hi: &mut [f64]) {
-        for (x, &f) in self.x.iter_mut().zip(&self.face) {
-            *x = r[f as usize];
+    /// The block of `entries` with `D_lo = d_lo` (empty: `I − D_hi`) and
+    /// `D_hi = d_hi`, column-major.
+    pub fn new(entries: Vec<u32>, d_lo: Vec<f64>, d_hi: Vec<f64>) -> DeluxeBlock {
+        let n = entries.len();
+        DeluxeBlock {
+            entries,
+            d: d_hi,
+            d_lo,
+            x: vec![0.0; n],
+            x2: vec![0.0; n],
+            y: vec![0.0; n],
         }
-        let n = self.face.len();
-        self.y.iter_mut().for_each(|y| *y = 0.0);
-        for (col, &xj) in self.d.chunks_exact(n).zip(&self.x) {
-            for (y, &a) in self.y.iter_mut().zip(col) {
+    }
+
+    /// The weights `D_j = (Σ_i S_i)⁺ S_j + N Nᵀ / m` of an edge shared by the
+    /// `m = sides.len()` subdomains with the Schur blocks `sides` (square,
+    /// symmetric, all of one size), column-major in the order given: they
+    /// sum to `I`, and directions no side resists get the multiplicity
+    /// weights. `None` if a block is missing, of the wrong size, or the
+    /// eigensolver fails.
+    pub fn edge_weights(sides: &[MatRef<'_, f64>]) -> Option<Vec<Vec<f64>>> {
+        let n = sides.first()?.nrows();
+        if sides.iter().any(|s| s.nrows() != n || s.ncols() != n) || n == 0 {
+            return None;
+        }
+        let m = sides.len();
+        let sum = Mat::from_fn(n, n, |i, j| {
+            0.5 * sides.iter().map(|s| s[(i, j)] + s[(j, i)]).sum::<f64>()
+        });
+        let rhs = Mat::from_fn(n, n * m, |i, c| sides[c / n][(i, c % n)]);
+        let all = deluxe_solve(&sum, rhs.as_ref(), 1.0 / m as f64)?;
+        Some(all.chunks_exact(n * n).map(<[f64]>::to_vec).collect())
+    }
+
+    /// `y = D x` with `D` column-major (`x.len()` square).
+    fn apply(d: &[f64], x: &[f64], y: &mut [f64]) {
+        y.iter_mut().for_each(|y| *y = 0.0);
+        for (col, &xj) in d.chunks_exact(x.len()).zip(x) {
+            for (y, &a) in y.iter_mut().zip(col) {
                 *y += a * xj;
             }
         }
-        for ((&f, &x), &y) in self.face.iter().zip(&self.x).zip(&self.y) {
-            lo[f as usize] = y;
-            hi[f as usize] = x - y;
+    }
+
+    /// `B_D,loᵀ r` and `B_D,hiᵀ r` on the block: `lo[f] = (D_hi r_F)`, `hi[f]
+    /// = D_lo r_F` (the other entries are left alone). No allocation.
+    pub fn scale(&mut self, r: &[f64], lo: &mut [f64], hi: &mut [f64]) {
+        for (x, &f) in self.x.iter_mut().zip(&self.entries) {
+            *x = r[f as usize];
+        }
+        Self::apply(&self.d, &self.x, &mut self.y);
+        if self.d_lo.is_empty() {
+            for ((&f, &x), &y) in self.entries.iter().zip(&self.x).zip(&self.y) {
+                lo[f as usize] = y;
+                hi[f as usize] = x - y;
+            }
+        } else {
+            Self::apply(&self.d_lo, &self.x, &mut self.x2);
+            for ((&f, &y), &y2) in self.entries.iter().zip(&self.y).zip(&self.x2) {
+                lo[f as usize] = y;
+                hi[f as usize] = y2;
+            }
         }
     }
 
-    /// `z_F = D_hiᵀ y_lo − D_loᵀ y_hi = D_hiᵀ (y_lo + y_hi) − y_hi` on the
-    /// face, with `y_lo[lo_idx[f]]`, `y_hi[hi_idx[f]]` the two sides' values
-    /// of entry `f`. No allocation.
+    /// `z_F = D_hiᵀ y_lo − D_loᵀ y_hi` on the block, with `y_lo[lo_idx[f]]`,
+    /// `y_hi[hi_idx[f]]` the two sides' values of entry `f`. No allocation.
     pub fn jump(&mut self, z: &mut [f64], y_lo: &[f64], lo_idx: &[u32], y_hi: &[f64], hi_idx: &[u32]) {
         self.face_jump(y_lo, lo_idx, y_hi, hi_idx);
         self.write_face(z);
     }
 
-    /// [`DeluxeFace::jump`] in two halves, for callers that see the two
+    /// [`DeluxeBlock::jump`] in two halves, for callers that see the two
     /// sides' values and the interface vector `z` at different times (the
     /// communication seam hands out the traces per interface): this one
-    /// computes the face's values from the traces into the face's scratch...
+    /// computes the block's values from the traces into its scratch...
     pub fn face_jump(&mut self, y_lo: &[f64], lo_idx: &[u32], y_hi: &[f64], hi_idx: &[u32]) {
-        for (x, &f) in self.x.iter_mut().zip(&self.face) {
-            let f = f as usize;
-            *x = y_lo[lo_idx[f] as usize] + y_hi[hi_idx[f] as usize];
-        }
-        let n = self.face.len();
-        for ((yk, col), &f) in self.y.iter_mut().zip(self.d.chunks_exact(n)).zip(&self.face) {
-            let dot: f64 = col.iter().zip(&self.x).map(|(a, b)| a * b).sum();
-            *yk = dot - y_hi[hi_idx[f as usize] as usize];
+        let n = self.entries.len();
+        if self.d_lo.is_empty() {
+            // D_hiᵀ y_lo − (I − D_hi)ᵀ y_hi = D_hiᵀ (y_lo + y_hi) − y_hi.
+            for (x, &f) in self.x.iter_mut().zip(&self.entries) {
+                let f = f as usize;
+                *x = y_lo[lo_idx[f] as usize] + y_hi[hi_idx[f] as usize];
+            }
+            for ((yk, col), &f) in self.y.iter_mut().zip(self.d.chunks_exact(n)).zip(&self.entries) {
+                let dot: f64 = col.iter().zip(&self.x).map(|(a, b)| a * b).sum();
+                *yk = dot - y_hi[hi_idx[f as usize] as usize];
+            }
+        } else {
+            for ((x, x2), &f) in self.x.iter_mut().zip(self.x2.iter_mut()).zip(&self.entries) {
+                let f = f as usize;
+                *x = y_lo[lo_idx[f] as usize];
+                *x2 = y_hi[hi_idx[f] as usize];
+            }
+            let cols = self.d.chunks_exact(n).zip(self.d_lo.chunks_exact(n));
+            for (yk, (c_hi, c_lo)) in self.y.iter_mut().zip(cols) {
+                let a: f64 = c_hi.iter().zip(&self.x).map(|(a, b)| a * b).sum();
+                let b: f64 = c_lo.iter().zip(&self.x2).map(|(a, b)| a * b).sum();
+                *yk = a - b;
+            }
         }
     }
 
-    /// ...and this one writes them into the face entries of `z`.
+    /// ...and this one writes them into the block's entries of `z`.
     pub fn write_face(&self, z: &mut [f64]) {
-        for (&f, &y) in self.face.iter().zip(&self.y) {
+        for (&f, &y) in self.entries.iter().zip(&self.y) {
             z[f as usize] = y;
         }
+    }
+}
+
+/// One set of interface dofs shared by the same three or more subdomains
+/// (an edge or a vertex of the partition): the unit of the deluxe weights
+/// at cross points.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Edge {
+    /// Its subdomains, increasing.
+    pub subdomains: Vec<usize>,
+    /// Per subdomain (in that order): the local dof of each of the edge's
+    /// dofs, in increasing global order.
+    pub rows: Vec<Vec<u32>>,
+}
+
+/// The edges of a decomposition ([`Edge`]), and where they lie on its
+/// pair interfaces.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Edges {
+    pub edges: Vec<Edge>,
+    /// Per interface: its edges, increasing, each with the interface's
+    /// entries of the edge's dofs (in the edge's order).
+    pub of_interface: Vec<Vec<(usize, Vec<u32>)>>,
+    /// Per subdomain: its edges, increasing.
+    pub of_subdomain: Vec<Vec<usize>>,
+}
+
+impl Edges {
+    /// The edges of the interfaces `ifaces`, with `dofs` and `multiplicity`
+    /// as in [`interface_weights`]. Every pair of an edge's subdomains has
+    /// an interface holding all its dofs (a dof shared by two subdomains is
+    /// an entry of their interface); an interface that does not is left
+    /// out of that edge. The same on every process. Set-up only.
+    pub fn new(ifaces: &[InterfaceEntries<'_>], dofs: &[Vec<usize>], multiplicity: &[Vec<u32>]) -> Edges {
+        use std::collections::BTreeMap;
+        // Per global dof of multiplicity ≥ 3: its (subdomain, local dof)
+        // pairs and its (interface, entry) pairs.
+        type At = (Vec<(usize, u32)>, Vec<(usize, u32)>);
+        let mut at: BTreeMap<usize, At> = BTreeMap::new();
+        for (i, it) in ifaces.iter().enumerate() {
+            for (j, (&a, &b)) in it.lo_idx.iter().zip(it.hi_idx).enumerate() {
+                if multiplicity[it.lo][a as usize] < 3 {
+                    continue;
+                }
+                let e = at.entry(dofs[it.lo][a as usize]).or_default();
+                e.0.extend([(it.lo, a), (it.hi, b)]);
+                e.1.push((i, j as u32));
+            }
+        }
+        let mut by_set: BTreeMap<Vec<usize>, Vec<usize>> = BTreeMap::new();
+        for (&g, (subs, _)) in at.iter_mut() {
+            subs.sort_unstable();
+            subs.dedup();
+            by_set
+                .entry(subs.iter().map(|&(s, _)| s).collect())
+                .or_default()
+                .push(g);
+        }
+        let mut out = Edges {
+            edges: Vec::with_capacity(by_set.len()),
+            of_interface: vec![Vec::new(); ifaces.len()],
+            of_subdomain: vec![Vec::new(); dofs.len()],
+        };
+        for (e, (subdomains, globals)) in by_set.into_iter().enumerate() {
+            let rows = subdomains
+                .iter()
+                .map(|&s| {
+                    let local = |g: &usize| at[g].0.iter().find(|&&(t, _)| t == s).map_or(u32::MAX, |&(_, l)| l);
+                    globals.iter().map(local).collect()
+                })
+                .collect();
+            let mut pairs: BTreeMap<usize, Vec<u32>> = BTreeMap::new();
+            for g in &globals {
+                for &(i, j) in &at[g].1 {
+                    pairs.entry(i).or_default().push(j);
+                }
+            }
+            for (i, entries) in pairs {
+                if entries.len() == globals.len() {
+                    out.of_interface[i].push((e, entries));
+                }
+            }
+            for &s in &subdomains {
+                out.of_subdomain[s].push(e);
+            }
+            out.edges.push(Edge { subdomains, rows });
+        }
+        out
     }
 }
 
@@ -504,7 +680,7 @@ mod tests {
     fn deluxe_face_weights() {
         // 1×1 faces: the stiffness ratio of the two sides (lo side 3, hi 1:
         // D_hi = 1/4); a face neither side holds is split evenly.
-        let d = DeluxeFace::new(
+        let d = DeluxeBlock::face(
             vec![0],
             Mat::from_fn(1, 1, |_, _| 3.0).as_ref(),
             Mat::from_fn(1, 1, |_, _| 1.0).as_ref(),
@@ -512,11 +688,11 @@ mod tests {
         .unwrap();
         assert!((d.d[0] - 0.25).abs() < 1e-15);
         let z = Mat::<f64>::zeros(1, 1);
-        assert_eq!(DeluxeFace::new(vec![0], z.as_ref(), z.as_ref()).unwrap().d, vec![0.5]);
+        assert_eq!(DeluxeBlock::face(vec![0], z.as_ref(), z.as_ref()).unwrap().d, vec![0.5]);
         // 2×2 with coupling: (S_lo + S_hi) D_hi = S_hi.
         let s_lo = Mat::from_fn(2, 2, |i, j| [[4.0, 1.0], [1.0, 3.0]][i][j]);
         let s_hi = Mat::from_fn(2, 2, |i, j| [[1.0, -0.5], [-0.5, 2.0]][i][j]);
-        let mut f = DeluxeFace::new(vec![0, 2], s_lo.as_ref(), s_hi.as_ref()).unwrap();
+        let mut f = DeluxeBlock::face(vec![0, 2], s_lo.as_ref(), s_hi.as_ref()).unwrap();
         let dm = Mat::from_fn(2, 2, |i, j| f.d[j * 2 + i]);
         let res = (&s_lo + &s_hi) * &dm - &s_hi;
         assert!(res.norm_max() < 1e-14, "{res:?}");
@@ -555,15 +731,15 @@ mod tests {
         };
         let (s_lo, s_hi) = (spd(1e4, 3), spd(1.0, 7));
         let sum = &s_lo + &s_hi;
-        let chol = DeluxeFace::by_cholesky(&sum, s_hi.as_ref()).expect("positive definite");
-        let eig = DeluxeFace::by_eigen(&sum, s_hi.as_ref()).unwrap();
+        let chol = by_cholesky(&sum, s_hi.as_ref()).expect("positive definite");
+        let eig = by_eigen(&sum, s_hi.as_ref(), 0.5).unwrap();
         let err = chol.iter().zip(&eig).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
         assert!(err < 1e-10, "{err}");
         // Singular sum: zero row and column 0 on both sides.
         let cut = |m: &Mat<f64>| Mat::from_fn(n, n, |i, j| if i == 0 || j == 0 { 0.0 } else { m[(i, j)] });
         let (z_lo, z_hi) = (cut(&s_lo), cut(&s_hi));
-        assert!(DeluxeFace::by_cholesky(&(&z_lo + &z_hi), z_hi.as_ref()).is_none());
-        let f = DeluxeFace::new((0..n as u32).collect(), z_lo.as_ref(), z_hi.as_ref()).unwrap();
+        assert!(by_cholesky(&(&z_lo + &z_hi), z_hi.as_ref()).is_none());
+        let f = DeluxeBlock::face((0..n as u32).collect(), z_lo.as_ref(), z_hi.as_ref()).unwrap();
         assert!((f.d[0] - 0.5).abs() < 1e-12, "{}", f.d[0]);
     }
 
@@ -578,5 +754,113 @@ mod tests {
         let mut out = [0.0; 3];
         scaled_jump_runs(&mut out, &lo, &w, &hi, &[1.0, 0.5, 0.25], &runs);
         assert_eq!(out, [0.5 - 30.0, 0.5 - 20.0, 8.0 - 2.5]);
+    }
+
+    /// Edge weights: `D_j = (Σ S_i)⁻¹ S_j` sum to `I` and solve their
+    /// defining equation; a direction no side holds is split in `1/m`.
+    #[test]
+    fn deluxe_edge_weights_sum_to_the_identity() {
+        let n = 3;
+        let spd = |seed: usize, scale: f64| {
+            let b = Mat::from_fn(n, n, |i, j| (((i * 7 + j * 5 + seed) % 11) as f64 - 5.0) / 5.0);
+            Mat::from_fn(n, n, |i, j| {
+                scale * ((0..n).map(|k| b[(i, k)] * b[(j, k)]).sum::<f64>() + if i == j { 0.3 } else { 0.0 })
+            })
+        };
+        let s = [spd(1, 1.0), spd(2, 1e3), spd(3, 0.1)];
+        let refs: Vec<MatRef<'_, f64>> = s.iter().map(|m| m.as_ref()).collect();
+        let w = DeluxeBlock::edge_weights(&refs).unwrap();
+        let sum = &s[0] + &s[1] + &s[2];
+        let mut total = Mat::<f64>::zeros(n, n);
+        for (d, sj) in w.iter().zip(&s) {
+            let dm = Mat::from_fn(n, n, |i, j| d[j * n + i]);
+            assert!((&sum * &dm - sj).norm_max() < 1e-11 * sum.norm_max());
+            total += &dm;
+        }
+        assert!((total - Mat::<f64>::identity(n, n)).norm_max() < 1e-12);
+        // No side holds anything: the multiplicity weights.
+        let z = Mat::<f64>::zeros(2, 2);
+        let w = DeluxeBlock::edge_weights(&[z.as_ref(), z.as_ref(), z.as_ref(), z.as_ref()]).unwrap();
+        assert!(w.iter().all(|d| d == &[0.25, 0.0, 0.0, 0.25]), "{w:?}");
+        // Sides of different sizes are refused.
+        let one = Mat::<f64>::identity(1, 1);
+        assert!(DeluxeBlock::edge_weights(&[one.as_ref(), z.as_ref(), z.as_ref()]).is_none());
+    }
+
+    /// With separate `D_lo` and `D_hi` the jump is the transpose of the
+    /// scaling: `⟨r, z⟩ = ⟨B_D,loᵀ r, y_lo⟩ − ⟨B_D,hiᵀ r, y_hi⟩`, which keeps
+    /// the preconditioner symmetric.
+    #[test]
+    fn deluxe_edge_block_jump_is_the_transpose_of_its_scaling() {
+        let d_lo = vec![0.2, 0.1, -0.05, 0.3];
+        let d_hi = vec![0.5, -0.2, 0.1, 0.4];
+        let mut b = DeluxeBlock::new(vec![0, 2], d_lo.clone(), d_hi.clone());
+        let r = [1.0, 9.0, -2.0];
+        let (mut lo, mut hi) = ([0.0; 3], [0.0; 3]);
+        b.scale(&r, &mut lo, &mut hi);
+        // lo = D_hi r_F, hi = D_lo r_F on the block's entries.
+        assert!((lo[0] - (0.5 * 1.0 + 0.1 * -2.0)).abs() < 1e-15 && lo[1] == 0.0);
+        assert!((hi[2] - (0.1 * 1.0 + 0.3 * -2.0)).abs() < 1e-15);
+        let (y_lo, y_hi) = ([0.7, 0.0, -1.3], [2.0, 0.0, 0.4]);
+        let idx = [0u32, 1, 2];
+        let mut z = [0.0; 3];
+        b.jump(&mut z, &y_lo, &idx, &y_hi, &idx);
+        let lhs: f64 = r.iter().zip(&z).map(|(a, b)| a * b).sum();
+        let rhs: f64 = (0..3).map(|k| lo[k] * y_lo[k] - hi[k] * y_hi[k]).sum();
+        assert!((lhs - rhs).abs() < 1e-14, "{lhs} vs {rhs}");
+    }
+
+    /// Three subdomains around dofs 4 and 5 (an edge), four around dof 6 (a
+    /// vertex); dofs 0..3 lie on faces.
+    #[test]
+    fn edges_group_the_dofs_of_each_subdomain_set() {
+        // Subdomain s holds global dof g at local g (s = 0, 1, 2) and at
+        // local g − 3 (s = 3, which holds 3..7).
+        let dofs = vec![
+            (0..7).collect::<Vec<usize>>(),
+            (0..7).collect(),
+            (0..7).collect(),
+            (3..7).collect(),
+        ];
+        let m = |g: usize| [2, 2, 2, 2, 3, 3, 4][g];
+        let multiplicity: Vec<Vec<u32>> = dofs.iter().map(|d| d.iter().map(|&g| m(g)).collect()).collect();
+        let local = |s: usize, g: usize| (if s == 3 { g - 3 } else { g }) as u32;
+        let pairs = [
+            (0, 1, vec![0, 4, 5, 6]),
+            (0, 2, vec![1, 4, 5, 6]),
+            (1, 2, vec![2, 4, 5, 6]),
+            (0, 3, vec![6]),
+            (1, 3, vec![3, 6]),
+            (2, 3, vec![6]),
+        ];
+        let idx: Vec<(Vec<u32>, Vec<u32>)> = pairs
+            .iter()
+            .map(|(a, b, gs)| {
+                (
+                    gs.iter().map(|&g| local(*a, g)).collect(),
+                    gs.iter().map(|&g| local(*b, g)).collect(),
+                )
+            })
+            .collect();
+        let ifaces: Vec<InterfaceEntries<'_>> = pairs
+            .iter()
+            .zip(&idx)
+            .map(|((a, b, _), (l, h))| InterfaceEntries {
+                lo: *a,
+                hi: *b,
+                lo_idx: l,
+                hi_idx: h,
+            })
+            .collect();
+        let e = Edges::new(&ifaces, &dofs, &multiplicity);
+        assert_eq!(e.edges.len(), 2);
+        assert_eq!(e.edges[0].subdomains, vec![0, 1, 2]);
+        assert_eq!(e.edges[0].rows, vec![vec![4, 5]; 3]);
+        assert_eq!(e.edges[1].subdomains, vec![0, 1, 2, 3]);
+        assert_eq!(e.edges[1].rows, vec![vec![6], vec![6], vec![6], vec![3]]);
+        // Interface (0, 1) holds the edge at entries 1, 2 and the vertex at 3.
+        assert_eq!(e.of_interface[0], vec![(0, vec![1, 2]), (1, vec![3])]);
+        assert_eq!(e.of_interface[4], vec![(1, vec![1])]);
+        assert_eq!(e.of_subdomain, vec![vec![0, 1], vec![0, 1], vec![0, 1], vec![1]]);
     }
 }

@@ -436,6 +436,10 @@ fn readme_tower_converges_like_direct() {
 /// of cable sets that are still moving stop on the indicator alone (only
 /// the settled set is certified at the tolerance): on the 32² grid with 4
 /// subdomains 70 against 22 (3.2×; 91 when every step was certified).
+/// Deluxe weights on the edges (2026-11-25) took the linear count to 17
+/// and the nonsmooth one to 66 (3.9×): the nonsmooth count is 11
+/// active-set steps of 4 to 11 iterations each, a floor the preconditioner
+/// does not move, so the bound is 4×.
 #[test]
 fn nonsmooth_grid_iterations_against_the_linear_count() {
     let nonsmooth = check(&grid_scene(32, 0.0, 1.0), 4, 1e-8);
@@ -451,7 +455,7 @@ fn nonsmooth_grid_iterations_against_the_linear_count() {
     assert!(linear.converged);
     let ratio = nonsmooth.iterations as f64 / linear.iterations as f64;
     assert!(
-        ratio <= 3.6,
+        ratio <= 4.0,
         "nonsmooth {} against linear {} iterations ({ratio:.2}×)",
         nonsmooth.iterations,
         linear.iterations

@@ -10,7 +10,7 @@ use crate::error::Result;
 use crate::method::stopping::{finish, stalled};
 use crate::outcome::{Outcome, Status};
 use crate::result::HistoryEntry;
-use crate::scaling::{self, DeluxeFace, EntryWeights, InterfaceScaling};
+use crate::scaling::{self, DeluxeBlock, EntryWeights, InterfaceScaling};
 use faer::Mat;
 use rayon::prelude::*;
 use std::time::Instant;
@@ -52,7 +52,7 @@ pub(crate) struct CgWorkspace {
     pub(crate) w: Vec<EntryWeights>,
     /// Per interface: the deluxe weights of its face (empty face unless the
     /// scaling is [`InterfaceScaling::Deluxe`]); they replace `w` there.
-    pub(crate) deluxe: Vec<DeluxeFace>,
+    pub(crate) deluxe: Vec<Vec<DeluxeBlock>>,
     /// Per interface: `B_D,loᵀ r` and `B_D,hiᵀ r` (entry order), the
     /// preconditioner's scaled residual on either side.
     sl: Vec<Vec<f64>>,
@@ -76,7 +76,7 @@ impl CgWorkspace {
             p: interface_sizes.clone().map(zeros).collect(),
             sl: interface_sizes.clone().map(zeros).collect(),
             sh: interface_sizes.clone().map(zeros).collect(),
-            deluxe: interface_sizes.clone().map(|_| DeluxeFace::default()).collect(),
+            deluxe: interface_sizes.clone().map(|_| Vec::new()).collect(),
             w: interface_sizes.map(|_| EntryWeights::default()).collect(),
             energy: vec![(0.0, 0.0); v.len()],
             v,
@@ -439,122 +439,232 @@ impl DdSolver {
                     .collect()
             })
             .collect();
-        drop(entries);
         if kind != InterfaceScaling::Deluxe {
-            ws.deluxe.iter_mut().for_each(|d| *d = DeluxeFace::default());
+            ws.deluxe.iter_mut().for_each(Vec::clear);
             return;
         }
+        // The dofs shared by three or more subdomains, by subdomain set.
+        let edges = scaling::Edges::new(&entries, &self.dof_maps, mult);
+        drop(entries);
+        // Per held subdomain: the rows of its edges' dofs, edge after edge.
+        let edge_rows: Vec<Vec<u32>> = held
+            .clone()
+            .map(|s| {
+                edges.of_subdomain[s]
+                    .iter()
+                    .flat_map(|&e| {
+                        let edge = &edges.edges[e];
+                        let m = edge.subdomains.binary_search(&s).expect("an edge lists its subdomains");
+                        edge.rows[m].iter().copied()
+                    })
+                    .collect()
+            })
+            .collect();
         // Face blocks of each subdomain's Schur complement, one column per
-        // face dof: `S_E e_l` restricted to the face.
+        // face dof: `S_E e_l` restricted to the face; then the block of all
+        // its edge dofs, whose diagonal blocks are the edges'.
         let ifaces = &self.op.ifaces;
         let taken_over = std::sync::atomic::AtomicUsize::new(0);
-        // Each face's rows (local, empty for the lumped blocks) and block.
-        let blocks: Vec<Vec<FaceBlock>> = self
+        // Each block's rows (local, empty for the lumped blocks) and block.
+        let blocks: Vec<(Vec<FaceBlock>, FaceBlock)> = self
             .op
             .subs
             .par_iter_mut()
-            .map(|s| {
+            .zip(edge_rows.into_par_iter())
+            .map(|(s, erows)| {
                 let n = s.op.n();
                 let (mut x, mut y) = (vec![0.0; n], vec![0.0; n]);
                 // Kept blocks of faces this set-up no longer has are dropped.
                 let mut earlier = s.face_blocks.as_mut().map(std::mem::take).unwrap_or_default();
-                let blocks = s
+                let mut block_of = |rows: Vec<u32>| -> FaceBlock {
+                    if rows.is_empty() {
+                        return (rows, Mat::zeros(0, 0));
+                    }
+                    let Some(ip) = s.interior.as_mut() else {
+                        // Lumped: the block of K_E.
+                        let mut b = Mat::<f64>::zeros(rows.len(), rows.len());
+                        for (k, &l) in rows.iter().enumerate() {
+                            x[l as usize] = 1.0;
+                            s.op.apply(&x, &mut y);
+                            x[l as usize] = 0.0;
+                            for (m, &g) in rows.iter().enumerate() {
+                                b[(m, k)] = y[g as usize];
+                            }
+                        }
+                        return (Vec::new(), b);
+                    };
+                    // A set-up that took this subdomain over may hold the
+                    // block already.
+                    let b = match earlier.iter().position(|(r, _)| *r == rows) {
+                        Some(k) => {
+                            taken_over.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                            earlier.swap_remove(k).1
+                        }
+                        // A failure (out of memory) leaves these dofs
+                        // without deluxe weights.
+                        None => ip.schur_block(&s.op, &rows).unwrap_or_else(|_| Mat::zeros(0, 0)),
+                    };
+                    (rows, b)
+                };
+                let face_blocks = s
                     .ifaces
                     .iter()
                     .map(|&(i, is_lo)| {
                         let it = &ifaces[i];
                         let idx = if is_lo { &it.lo_idx } else { &it.hi_idx };
-                        let face = &faces[i];
-                        if let Some(ip) = s.interior.as_mut() {
-                            let rows: Vec<u32> = face.iter().map(|&f| idx[f as usize]).collect();
-                            // A set-up that took this subdomain over may
-                            // hold the block already.
-                            let b = match earlier.iter().position(|(r, _)| *r == rows) {
-                                Some(k) => {
-                                    taken_over.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-                                    earlier.swap_remove(k).1
-                                }
-                                // A failure (out of memory) leaves this face
-                                // without deluxe weights.
-                                None => ip.schur_block(&s.op, &rows).unwrap_or_else(|_| Mat::zeros(0, 0)),
-                            };
-                            return (rows, b);
-                        }
-                        // Lumped: the face block of K_E.
-                        let mut b = Mat::<f64>::zeros(face.len(), face.len());
-                        for (k, &f) in face.iter().enumerate() {
-                            let l = idx[f as usize] as usize;
-                            x[l] = 1.0;
-                            s.op.apply(&x, &mut y);
-                            x[l] = 0.0;
-                            for (m, &g) in face.iter().enumerate() {
-                                b[(m, k)] = y[idx[g as usize] as usize];
-                            }
-                        }
-                        (Vec::new(), b)
+                        block_of(faces[i].iter().map(|&f| idx[f as usize]).collect())
                     })
                     .collect();
+                let edge_block = block_of(erows);
                 if let Some(ip) = s.interior.as_mut() {
                     ip.release_face_scratch();
                 }
-                blocks
+                (face_blocks, edge_block)
             })
             .collect();
         self.stats.face_blocks_reused = taken_over.into_inner();
         let mut side: Vec<[Option<&Mat<f64>>; 2]> = vec![[None, None]; self.op.ifaces.len()];
-        for (s, b) in self.op.subs.iter().zip(&blocks) {
+        for (s, (b, _)) in self.op.subs.iter().zip(&blocks) {
             for (&(i, is_lo), (_, m)) in s.ifaces.iter().zip(b) {
-                side[i][usize::from(!is_lo)] = Some(m);
+                if m.nrows() > 0 {
+                    side[i][usize::from(!is_lo)] = Some(m);
+                }
             }
         }
-        // The other side's block where it lives on another process.
-        let remote: Vec<[Mat<f64>; 2]> = if held.len() == self.dof_maps.len() {
+        // Each edge's blocks, by its subdomains: the diagonal blocks of the
+        // held subdomains' edge blocks.
+        let mut edge_side: Vec<Vec<Option<Mat<f64>>>> =
+            edges.edges.iter().map(|e| vec![None; e.subdomains.len()]).collect();
+        for (k, (_, (_, b))) in blocks.iter().enumerate() {
+            if b.nrows() == 0 {
+                continue;
+            }
+            let mut at = 0;
+            for &e in &edges.of_subdomain[first + k] {
+                let edge = &edges.edges[e];
+                let n = edge.rows[0].len();
+                let m = edge
+                    .subdomains
+                    .binary_search(&(first + k))
+                    .expect("an edge lists its subdomains");
+                edge_side[e][m] = Some(b.submatrix(at, at, n, n).to_owned());
+                at += n;
+            }
+        }
+        // The neighbours' blocks where they live on another process: each
+        // side sends its face block, then its blocks of the interface's
+        // edges (every subdomain of an edge has an interface with every
+        // other), each as its order and its entries (order 0: none).
+        let remote_faces: Vec<[Mat<f64>; 2]> = if held.len() == self.dof_maps.len() {
             Vec::new()
         } else {
-            let side = &side;
-            self.op
-                .comm
-                .exchange(|i, is_lo| {
-                    side[i][usize::from(!is_lo)]
-                        .map(|m| (0..m.ncols()).flat_map(|j| m.col(j).iter().copied()).collect())
-                        .unwrap_or_default()
-                })
-                .into_iter()
-                .map(|ps| {
-                    ps.map(|p| {
-                        let n = (p.len() as f64).sqrt().round() as usize;
-                        if n * n == p.len() {
-                            Mat::from_fn(n, n, |a, b| p[b * n + a])
-                        } else {
-                            Mat::zeros(0, 0)
+            let (side_ref, edge_ref, edges) = (&side, &edge_side, &edges);
+            let put = |out: &mut Vec<f64>, m: Option<&Mat<f64>>| match m {
+                Some(m) => {
+                    out.push(m.nrows() as f64);
+                    out.extend((0..m.ncols()).flat_map(|j| m.col(j).iter().copied()));
+                }
+                None => out.push(0.0),
+            };
+            let sides = self.op.comm.exchange(|i, is_lo| {
+                let it = &ifaces[i];
+                let s = if is_lo { it.lo } else { it.hi };
+                let mut out = Vec::new();
+                put(&mut out, side_ref[i][usize::from(!is_lo)]);
+                for &(e, _) in &edges.of_interface[i] {
+                    let m = edges.edges[e]
+                        .subdomains
+                        .binary_search(&s)
+                        .expect("an edge lists its subdomains");
+                    put(&mut out, edge_ref[e][m].as_ref());
+                }
+                out
+            });
+            // Blocks in the order sent, until the payload ends (an empty
+            // payload: an interface without a subdomain here).
+            let take = |p: &[f64], at: &mut usize| -> Option<Mat<f64>> {
+                let n = *p.get(*at)? as usize;
+                *at += 1;
+                let data = p.get(*at..*at + n * n)?;
+                *at += n * n;
+                (n > 0).then(|| Mat::from_fn(n, n, |a, b| data[b * n + a]))
+            };
+            let mut faces_in = Vec::with_capacity(sides.len());
+            for (i, ps) in sides.iter().enumerate() {
+                let it = &ifaces[i];
+                let mut two: [Mat<f64>; 2] = [Mat::zeros(0, 0), Mat::zeros(0, 0)];
+                for (k, (p, s)) in ps.iter().zip([it.lo, it.hi]).enumerate() {
+                    let mut at = 0;
+                    if let Some(m) = take(p, &mut at) {
+                        two[k] = m;
+                    }
+                    for &(e, _) in &edges.of_interface[i] {
+                        let m = edges.edges[e]
+                            .subdomains
+                            .binary_search(&s)
+                            .expect("an edge lists its subdomains");
+                        if let Some(b) = take(p, &mut at) {
+                            edge_side[e][m].get_or_insert(b);
                         }
-                    })
-                })
-                .collect()
+                    }
+                }
+                faces_in.push(two);
+            }
+            faces_in
         };
-        for (i, [lo, hi]) in remote.iter().enumerate() {
+        for (i, [lo, hi]) in remote_faces.iter().enumerate() {
             for (k, m) in [(0, lo), (1, hi)] {
                 if side[i][k].is_none() && m.nrows() > 0 {
                     side[i][k] = Some(m);
                 }
             }
         }
+        // Each edge's weights `D_j`, in the order of its subdomains, where a
+        // subdomain of it is held here and every block is known.
+        let edge_weights: Vec<Option<Vec<Vec<f64>>>> = edges
+            .edges
+            .par_iter()
+            .zip(edge_side.par_iter())
+            .map(|(edge, blocks)| {
+                let here = edge.subdomains.iter().any(|s| held.contains(s));
+                let sides: Option<Vec<_>> = blocks.iter().map(|b| b.as_ref().map(Mat::as_ref)).collect();
+                // A failed eigensolve leaves the pointwise weights there.
+                sides.filter(|_| here).and_then(|s| DeluxeBlock::edge_weights(&s))
+            })
+            .collect();
         ws.deluxe = faces
             .into_par_iter()
             .zip(side.par_iter())
-            .map(|(face, [lo, hi])| match (lo, hi) {
-                (Some(lo), Some(hi)) if !face.is_empty() && lo.nrows() == face.len() && hi.nrows() == face.len() => {
-                    // A failed eigensolve leaves the pointwise weights there.
-                    DeluxeFace::new(face, lo.as_ref(), hi.as_ref()).unwrap_or_default()
+            .enumerate()
+            .map(|(i, (face, [lo, hi]))| {
+                let mut out = Vec::new();
+                if let (Some(lo), Some(hi)) = (lo, hi) {
+                    if !face.is_empty() && lo.nrows() == face.len() && hi.nrows() == face.len() {
+                        // A failed eigensolve leaves the pointwise weights there.
+                        out.extend(DeluxeBlock::face(face, lo.as_ref(), hi.as_ref()));
+                    }
                 }
-                _ => DeluxeFace::default(),
+                let it = &ifaces[i];
+                for (e, entries) in &edges.of_interface[i] {
+                    let subs = &edges.edges[*e].subdomains;
+                    if let (Some(w), Ok(a), Ok(b)) = (
+                        &edge_weights[*e],
+                        subs.binary_search(&it.lo),
+                        subs.binary_search(&it.hi),
+                    ) {
+                        // The lo side takes the hi subdomain's share, and the
+                        // hi side the lo one's.
+                        out.push(DeluxeBlock::new(entries.clone(), w[a].clone(), w[b].clone()));
+                    }
+                }
+                out
             })
             .collect();
-        // A set-up that keeps its Schur face blocks for the next one
+        // A set-up that keeps its Schur blocks for the next one
         // (`DdSolver::new_pooled`) takes them over here, without a copy.
-        for (s, b) in self.op.subs.iter_mut().zip(blocks) {
+        for (s, (b, e)) in self.op.subs.iter_mut().zip(blocks) {
             if let (Some(kept), true) = (s.face_blocks.as_mut(), s.interior.is_some()) {
-                kept.extend(b.into_iter().filter(|(_, m)| m.nrows() > 0));
+                kept.extend(b.into_iter().chain([e]).filter(|(_, m)| m.nrows() > 0));
             }
         }
     }
