@@ -90,9 +90,10 @@ typedef enum NsddElementKind {
 typedef enum NsddInterfaceScaling {
     /**
      * Dense weights from the subdomains' Schur complements on each
-     * interface face (default): fewest iterations, across stiffness
-     * contrasts too; one Schur complement application per face dof at
-     * set-up.
+     * interface face and on each set of dofs shared by three or more
+     * subdomains (default): fewest iterations, across stiffness
+     * contrasts too; one Schur complement application per interface dof
+     * at set-up.
      */
     NSDD_INTERFACE_SCALING_DELUXE = 0,
     /**

@@ -100,9 +100,10 @@ pub enum NsddPreconditioner {
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum NsddInterfaceScaling {
     /// Dense weights from the subdomains' Schur complements on each
-    /// interface face (default): fewest iterations, across stiffness
-    /// contrasts too; one Schur complement application per face dof at
-    /// set-up.
+    /// interface face and on each set of dofs shared by three or more
+    /// subdomains (default): fewest iterations, across stiffness
+    /// contrasts too; one Schur complement application per interface dof
+    /// at set-up.
     Deluxe = 0,
     /// Multiplicity weights, diagonal-stiffness weights where the sides
     /// differ by more than 1000×.
