@@ -580,7 +580,8 @@ impl Edges {
             let rows = subdomains
                 .iter()
                 .map(|&s| {
-                    let local = |g: &usize| at[g].0.iter().find(|&&(t, _)| t == s).map_or(u32::MAX, |&(_, l)| l);
+                    // `s` is in the set because a pair listed it with `g`.
+                    let local = |g: &usize| at[g].0.iter().find(|&&(t, _)| t == s).expect("listed with the dof").1;
                     globals.iter().map(local).collect()
                 })
                 .collect();
