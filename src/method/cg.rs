@@ -5,7 +5,7 @@
 
 use crate::cg_stopping::{self, CgStopping};
 use crate::comm::Communicator;
-use crate::dd::{DdSolver, FaceBlock};
+use crate::dd::{DdSolver, FaceBlock, IfaceState};
 use crate::error::Result;
 use crate::method::stopping::{finish, stalled};
 use crate::outcome::{Outcome, Status};
@@ -551,66 +551,11 @@ impl DdSolver {
                 at += n;
             }
         }
-        // The neighbours' blocks where they live on another process: each
-        // side sends its face block, then its blocks of the interface's
-        // edges (every subdomain of an edge has an interface with every
-        // other), each as its order and its entries (order 0: none).
+        // The neighbours' blocks where they live on another process.
         let remote_faces: Vec<[Mat<f64>; 2]> = if held.len() == self.dof_maps.len() {
             Vec::new()
         } else {
-            let (side_ref, edge_ref, edges) = (&side, &edge_side, &edges);
-            let put = |out: &mut Vec<f64>, m: Option<&Mat<f64>>| match m {
-                Some(m) => {
-                    out.push(m.nrows() as f64);
-                    out.extend((0..m.ncols()).flat_map(|j| m.col(j).iter().copied()));
-                }
-                None => out.push(0.0),
-            };
-            let sides = self.op.comm.exchange(|i, is_lo| {
-                let it = &ifaces[i];
-                let s = if is_lo { it.lo } else { it.hi };
-                let mut out = Vec::new();
-                put(&mut out, side_ref[i][usize::from(!is_lo)]);
-                for &(e, _) in &edges.of_interface[i] {
-                    let m = edges.edges[e]
-                        .subdomains
-                        .binary_search(&s)
-                        .expect("an edge lists its subdomains");
-                    put(&mut out, edge_ref[e][m].as_ref());
-                }
-                out
-            });
-            // Blocks in the order sent, until the payload ends (an empty
-            // payload: an interface without a subdomain here).
-            let take = |p: &[f64], at: &mut usize| -> Option<Mat<f64>> {
-                let n = *p.get(*at)? as usize;
-                *at += 1;
-                let data = p.get(*at..*at + n * n)?;
-                *at += n * n;
-                (n > 0).then(|| Mat::from_fn(n, n, |a, b| data[b * n + a]))
-            };
-            let mut faces_in = Vec::with_capacity(sides.len());
-            for (i, ps) in sides.iter().enumerate() {
-                let it = &ifaces[i];
-                let mut two: [Mat<f64>; 2] = [Mat::zeros(0, 0), Mat::zeros(0, 0)];
-                for (k, (p, s)) in ps.iter().zip([it.lo, it.hi]).enumerate() {
-                    let mut at = 0;
-                    if let Some(m) = take(p, &mut at) {
-                        two[k] = m;
-                    }
-                    for &(e, _) in &edges.of_interface[i] {
-                        let m = edges.edges[e]
-                            .subdomains
-                            .binary_search(&s)
-                            .expect("an edge lists its subdomains");
-                        if let Some(b) = take(p, &mut at) {
-                            edge_side[e][m].get_or_insert(b);
-                        }
-                    }
-                }
-                faces_in.push(two);
-            }
-            faces_in
+            exchange_deluxe_blocks(&self.op.comm, ifaces, &edges, &side, &mut edge_side)
         };
         for (i, [lo, hi]) in remote_faces.iter().enumerate() {
             for (k, m) in [(0, lo), (1, hi)] {
@@ -679,4 +624,71 @@ impl DdSolver {
     fn cg_energies(&mut self, ws: &mut CgWorkspace) -> (f64, f64) {
         self.op.jump_energies(&ws.v, &mut ws.energy)
     }
+}
+
+/// The deluxe blocks of the neighbours held by another process: each side
+/// sends its face block, then its blocks of the interface's edges (every
+/// subdomain of an edge has an interface with every other), each as its
+/// order and its entries (order 0: none). Returns each interface's two face
+/// blocks as received and fills in the edge blocks missing from
+/// `edge_side`. Set-up only (allocates).
+fn exchange_deluxe_blocks(
+    comm: &impl Communicator,
+    ifaces: &[IfaceState],
+    edges: &scaling::Edges,
+    side: &[[Option<&Mat<f64>>; 2]],
+    edge_side: &mut [Vec<Option<Mat<f64>>>],
+) -> Vec<[Mat<f64>; 2]> {
+    let put = |out: &mut Vec<f64>, m: Option<&Mat<f64>>| match m {
+        Some(m) => {
+            out.push(m.nrows() as f64);
+            out.extend((0..m.ncols()).flat_map(|j| m.col(j).iter().copied()));
+        }
+        None => out.push(0.0),
+    };
+    let sides = comm.exchange(|i, is_lo| {
+        let it = &ifaces[i];
+        let s = if is_lo { it.lo } else { it.hi };
+        let mut out = Vec::new();
+        put(&mut out, side[i][usize::from(!is_lo)]);
+        for &(e, _) in &edges.of_interface[i] {
+            let m = edges.edges[e]
+                .subdomains
+                .binary_search(&s)
+                .expect("an edge lists its subdomains");
+            put(&mut out, edge_side[e][m].as_ref());
+        }
+        out
+    });
+    // Blocks in the order sent, until the payload ends (an empty
+    // payload: an interface without a subdomain here).
+    let take = |p: &[f64], at: &mut usize| -> Option<Mat<f64>> {
+        let n = *p.get(*at)? as usize;
+        *at += 1;
+        let data = p.get(*at..*at + n * n)?;
+        *at += n * n;
+        (n > 0).then(|| Mat::from_fn(n, n, |a, b| data[b * n + a]))
+    };
+    let mut faces_in = Vec::with_capacity(sides.len());
+    for (i, ps) in sides.iter().enumerate() {
+        let it = &ifaces[i];
+        let mut two: [Mat<f64>; 2] = [Mat::zeros(0, 0), Mat::zeros(0, 0)];
+        for (k, (p, s)) in ps.iter().zip([it.lo, it.hi]).enumerate() {
+            let mut at = 0;
+            if let Some(m) = take(p, &mut at) {
+                two[k] = m;
+            }
+            for &(e, _) in &edges.of_interface[i] {
+                let m = edges.edges[e]
+                    .subdomains
+                    .binary_search(&s)
+                    .expect("an edge lists its subdomains");
+                if let Some(b) = take(p, &mut at) {
+                    edge_side[e][m].get_or_insert(b);
+                }
+            }
+        }
+        faces_in.push(two);
+    }
+    faces_in
 }
