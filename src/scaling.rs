@@ -369,23 +369,19 @@ fn by_eigen(sum: &Mat<f64>, rhs: MatRef<'_, f64>, share: f64) -> Option<Vec<f64>
     let cut = DELUXE_PINV_RTOL * smax;
     // sum⁺ rhs = U Λ⁺ Uᵀ rhs, plus share · U₀ U₀ᵀ.
     let ut_rhs = u.transpose() * rhs;
+    // The null part is the same for every block: formed once.
+    let null = Mat::<f64>::from_fn(n, n, |k, j| if s[k] > cut { 0.0 } else { share * u[(j, k)] });
+    let u_null = u * &null;
     let mut scaled = Mat::<f64>::zeros(n, n);
-    let mut null = Mat::<f64>::zeros(n, n);
     let blocks = rhs.ncols() / n.max(1);
     let mut out = Vec::with_capacity(n * rhs.ncols());
     for b in 0..blocks {
-        for k in 0..n {
-            if s[k] > cut {
-                for j in 0..n {
-                    scaled[(k, j)] = ut_rhs[(k, b * n + j)] / s[k];
-                }
-            } else {
-                for j in 0..n {
-                    null[(k, j)] = share * u[(j, k)];
-                }
+        for k in (0..n).filter(|&k| s[k] > cut) {
+            for j in 0..n {
+                scaled[(k, j)] = ut_rhs[(k, b * n + j)] / s[k];
             }
         }
-        out.extend(finite_column_major(&(u * &scaled + u * &null))?);
+        out.extend(finite_column_major(&(u * &scaled + &u_null))?);
     }
     Some(out)
 }
