@@ -109,6 +109,13 @@ pub fn summary(scene: &Scene, r: &SolveResult) -> String {
         r.timings_s.solve,
         r.timings_s.setup + r.timings_s.solve
     );
+    if let Some(p) = &r.timings_s.setup_phases {
+        let _ = writeln!(
+            s,
+            "setup       factor {:.4} s, interior {:.4} s, scaling {:.4} s, coarse {:.4} s, d {:.4} s",
+            p.factor, p.interior, p.scaling, p.coarse, p.search_direction
+        );
+    }
     match max_displacement(&r.displacements) {
         Some((n, m)) => {
             let _ = writeln!(s, "max |u|     {m:.6e} (node {n})");

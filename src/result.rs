@@ -25,6 +25,26 @@ pub struct HistoryEntry {
 pub struct Timings {
     pub setup: f64,
     pub solve: f64,
+    /// Where a DD set-up went (nsdd addition; absent for `direct`, and for
+    /// nonsmooth cg, whose set-ups repeat per cable set).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub setup_phases: Option<SetupPhases>,
+}
+
+/// Phases of one DD set-up, in seconds; `setup` less their sum is the
+/// model, the partition and the interfaces.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct SetupPhases {
+    /// Subdomain assembly and factorizations, kernels included.
+    pub factor: f64,
+    /// cg's interior (Dirichlet) factorizations.
+    pub interior: f64,
+    /// cg's interface weights (the deluxe Schur blocks).
+    pub scaling: f64,
+    /// Macro basis, coarse operator and its factorization.
+    pub coarse: f64,
+    /// The stationary methods' choice of `d`.
+    pub search_direction: f64,
 }
 
 /// State of one load case or load step (nsdd addition).

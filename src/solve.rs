@@ -37,7 +37,7 @@ use crate::model::Model;
 use crate::nonsmooth::{NonsmoothCg, NonsmoothOptions};
 use crate::outcome::{Outcome, Status};
 use crate::partition::{resolve_subdomains, Partition};
-use crate::result::{CaseResult, HistoryEntry, SolveResult, Timings};
+use crate::result::{CaseResult, HistoryEntry, SetupPhases, SolveResult, Timings};
 use crate::scene::{Method, Partitioner, Scene};
 pub use crate::settings::SolverSettings;
 use std::time::Instant;
@@ -431,6 +431,19 @@ pub fn solve_in(
             ));
         }
     }
+    let setup_phases = match &prepared {
+        Prepared::Dd(dd, _) => {
+            let st = dd.stats();
+            Some(SetupPhases {
+                factor: st.factor_s,
+                interior: st.interior_s,
+                scaling: st.scaling_s,
+                coarse: st.coarse_s,
+                search_direction: st.search_direction_s,
+            })
+        }
+        _ => None,
+    };
     Ok(SolveResult {
         scene: model.name.clone(),
         method: opts.method.name().to_string(),
@@ -448,6 +461,7 @@ pub fn solve_in(
         timings_s: Timings {
             setup,
             solve: t_solve.elapsed().as_secs_f64(),
+            setup_phases,
         },
         search_direction: d,
         notes,
