@@ -511,6 +511,19 @@ enum NsddStatus nsdd_options_set_preconditioner(struct NsddOptions *options,
 enum NsddStatus nsdd_options_set_interface_scaling(struct NsddOptions *options, uint32_t scaling);
 
 /**
+ * Sets the threshold of `cg`'s adaptive macro space, overriding the
+ * scene's `[solver] adaptive_threshold`: on every face, the jumps whose
+ * local eigenvalue exceeds it become macro columns (worth it where stiff
+ * bars hang on soft cables; 10 is a good start). 0 switches it off (the
+ * default); other values must be finite and above 1, else
+ * INVALID_ARGUMENT. Ignored by the other methods; refused under MPI.
+ *
+ * # Safety
+ * `options` must be a live options handle.
+ */
+enum NsddStatus nsdd_options_set_adaptive_threshold(struct NsddOptions *options, double threshold);
+
+/**
  * Sets the automatic partitioner, overriding the scene's `[solver]
  * partitioner`: 0 coordinate bisection, 1 METIS k-way; any other value is
  * INVALID_ARGUMENT. Ignored by the direct method and when the scene's

@@ -18,6 +18,7 @@
 //! of threads. Scratch is allocated at set-up: the iteration loop does not
 //! allocate.
 
+use crate::adaptive;
 use crate::coarse::{CoarseContribution, CoarseProblem, MacroBasis};
 use crate::comm::{Communicator, Placement, Seam};
 use crate::decomposition::Decomposition;
@@ -52,6 +53,9 @@ pub struct DdOptions {
     /// Weights of the CG preconditioner's scaled jump operator
     /// ([`crate::scaling`]; ignored by the stationary iteration).
     pub interface_scaling: InterfaceScaling,
+    /// Eigenvalue threshold of the adaptive macro columns
+    /// ([`crate::adaptive`]); 0: none.
+    pub adaptive_threshold: f64,
 }
 
 impl DdOptions {
@@ -73,6 +77,7 @@ impl DdOptions {
             search_direction: s.search_direction,
             preconditioner: s.preconditioner,
             interface_scaling: s.interface_scaling,
+            adaptive_threshold: s.adaptive_threshold,
         })
     }
 }
@@ -328,6 +333,9 @@ pub struct DdStats {
     pub subdomains: usize,
     pub kernel_dims: Vec<usize>,
     pub macro_unknowns: usize,
+    /// Macro columns the adaptive macro space added (included in
+    /// `macro_unknowns`).
+    pub adaptive_columns: usize,
     pub kernel_unknowns: usize,
     pub interface_entries: usize,
     pub nnz_l: usize,
@@ -516,12 +524,15 @@ impl DdSolver {
         problem: DdProblem<'_>,
         opts: DdOptions,
         name_dof: &dyn Fn(usize) -> String,
-        pooled: Option<Vec<(Option<InteriorProblem>, Vec<FaceBlock>)>>,
+        mut pooled: Option<Vec<(Option<InteriorProblem>, Vec<FaceBlock>)>>,
     ) -> Result<DdSolver> {
         let t0 = Instant::now();
+        // Whether the caller keeps the Schur blocks for a later set-up (the
+        // adaptive macro space hands its blocks to the cg set-up the same way).
+        let retain_blocks = pooled.is_some();
         let DdProblem {
             decomposition: dec,
-            operators,
+            mut operators,
             loads,
             placement,
             dof_points,
@@ -547,6 +558,14 @@ impl DdSolver {
             )));
         }
         seam.agree(Ok(()))?;
+        if opts.adaptive_threshold > 0.0 && owned.len() != ns {
+            // Each face's eigenproblem needs both of its subdomains' operators.
+            return seam.agree(Err(Error::MethodNotApplicable(
+                "solver.adaptive_threshold: the adaptive macro space needs both subdomains of every interface in one \
+                 process, not yet the case under MPI; set it to 0"
+                    .into(),
+            )));
+        }
         // Kernel dimensions of every subdomain (each process factored its own).
         let local_dims: Vec<f64> = operators.iter().map(|o| o.kernel_dim() as f64).collect();
         let kernel_dims: Vec<usize> = seam.gather(&local_dims).into_iter().map(|d| d as usize).collect();
@@ -609,6 +628,7 @@ impl DdSolver {
             .collect();
         let touched = |it: &IfaceState| local(it.lo).is_some() || local(it.hi).is_some();
         let mut n_macro = 0;
+        let mut adaptive_columns = 0;
         if use_coarse {
             // Each side's kernel on the interface entries (column-major).
             let traces = seam.exchange(|i, is_lo| {
@@ -623,30 +643,53 @@ impl DdSolver {
                     .flat_map(|q| idx.iter().map(move |&l| r[(l as usize, q)]))
                     .collect()
             });
+            // The adaptive macro space: each held subdomain's principal and
+            // Neumann blocks on its faces, then one eigenproblem per face.
+            let adaptive_on = opts.adaptive_threshold > 0.0 && opts.krylov && !natural_only;
+            let (face_entries, face_sides) = if adaptive_on {
+                let entries = adaptive::face_entries(dec);
+                let pool = pooled.get_or_insert_with(|| (0..owned.len()).map(|_| (None, Vec::new())).collect());
+                let sides = adaptive::face_sides(dec, first, &mut operators, pool, &entries)?;
+                (entries, sides)
+            } else {
+                (Vec::new(), Vec::new())
+            };
+            let n_adaptive = std::sync::atomic::AtomicUsize::new(0);
             let blocks: Vec<Option<Mat<f64>>> = dec
                 .interfaces
                 .par_iter()
                 .zip(ifaces.par_iter())
                 .zip(traces.par_iter())
-                .map(|((it, st), [tl, th])| {
+                .enumerate()
+                .map(|(i, ((it, st), [tl, th]))| {
                     if !touched(st) {
-                        return None;
+                        return Ok(None);
                     }
                     let n = it.len();
                     let tlo = Mat::from_fn(n, kernel_dims[it.lo], |j, q| tl[q * n + j]);
                     let thi = Mat::from_fn(n, kernel_dims[it.hi], |j, q| th[q * n + j]);
-                    Some(if natural_only {
+                    Ok(Some(if natural_only {
                         // No geometric modes: no dof points needed (the
                         // algebraic level may not have them).
                         MacroBasis::kernel_block(&tlo, &thi)
                     } else {
                         let dofs = &dec.entry_dof[it.start..it.end];
                         let (points, comp): (Vec<[f64; 3]>, Vec<usize>) = dofs.iter().map(|&d| dof_points[d]).unzip();
-                        MacroBasis::interface_block(&points, &comp, &tlo, &thi)
-                    })
+                        let p = MacroBasis::interface_block(&points, &comp, &tlo, &thi);
+                        match face_sides.get(i) {
+                            Some([Some(lo), Some(hi)]) => {
+                                let (p, added) =
+                                    adaptive::enrich(p, &face_entries[i], lo, hi, opts.adaptive_threshold)?;
+                                n_adaptive.fetch_add(added, std::sync::atomic::Ordering::Relaxed);
+                                p
+                            }
+                            _ => p,
+                        }
+                    }))
                 })
-                .collect();
+                .collect::<Result<_>>()?;
             drop(traces);
+            adaptive_columns = n_adaptive.into_inner();
             // Macro offsets need every interface's width: the process of
             // its `lo` subdomain tells.
             let widths: Vec<f64> = blocks
@@ -839,6 +882,7 @@ impl DdSolver {
             subdomains: ns,
             kernel_dims: kernel_dims.clone(),
             macro_unknowns: n_macro,
+            adaptive_columns,
             kernel_unknowns: alpha_off,
             interface_entries: dec.n_entries(),
             nnz_l: nnz_l.iter().sum::<f64>() as usize,
@@ -912,6 +956,11 @@ impl DdSolver {
             // After the interior problems: the deluxe blocks apply them.
             let t = Instant::now();
             solver.set_interface_scaling(solver.opts.interface_scaling);
+            if !retain_blocks {
+                for st in solver.op.subs.iter_mut() {
+                    st.face_blocks = None;
+                }
+            }
             solver.stats.scaling_s = t.elapsed().as_secs_f64();
         }
         let t_d = Instant::now();
@@ -1311,6 +1360,7 @@ pub(crate) fn cg_test_problem() -> (Model, Decomposition, DdOptions) {
         krylov: true,
         preconditioner: Preconditioner::Dirichlet,
         interface_scaling: InterfaceScaling::Deluxe,
+        adaptive_threshold: 0.0,
     };
     (model, dec, opts)
 }

@@ -4,6 +4,7 @@
 // Index loops mirror the formulas of docs/design.md in the numerical code, and
 // `!(x > 0.0)` is the deliberate NaN-catching form of a positivity check.
 #![allow(clippy::needless_range_loop, clippy::neg_cmp_op_on_partial_ord)]
+pub mod adaptive;
 pub mod algebraic;
 pub mod bench;
 pub mod capi;

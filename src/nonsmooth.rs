@@ -168,6 +168,8 @@ pub struct NonsmoothOptions {
     pub max_iterations: usize,
     pub preconditioner: Preconditioner,
     pub interface_scaling: InterfaceScaling,
+    /// See [`crate::settings::SolverSettings::adaptive_threshold`].
+    pub adaptive_threshold: f64,
 }
 
 /// One solved state of the nonsmooth CG.
@@ -520,6 +522,7 @@ impl NonsmoothCg {
             krylov: true,
             preconditioner: self.opts.preconditioner,
             interface_scaling: self.opts.interface_scaling,
+            adaptive_threshold: self.opts.adaptive_threshold,
             tolerance: self.opts.tolerance,
             max_iterations: self.opts.max_iterations,
             search_direction: SearchDirection::Auto,

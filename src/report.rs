@@ -500,6 +500,7 @@ fn method_options(
         search_direction: d,
         preconditioner,
         interface_scaling: Default::default(),
+        adaptive_threshold: 0.0,
         partitioner,
     }
 }

@@ -161,6 +161,12 @@ pub struct SolverSettings {
     /// other methods). Not written when it is the default.
     #[serde(default, skip_serializing_if = "InterfaceScaling::is_default")]
     pub interface_scaling: InterfaceScaling,
+    /// Adaptive macro space of `cg` (ignored by the other methods): on
+    /// every face, the jumps whose local eigenvalue exceeds this threshold
+    /// become macro columns (`crate::adaptive`); 0 (the default, not
+    /// written): none. Worth it where stiff parts hang on soft ones.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub adaptive_threshold: f64,
     /// Automatic partition into `subdomains` (ignored when the elements
     /// carry their subdomain). Not written when it is the default, so that
     /// scenes stay readable by versions without the field.
@@ -217,6 +223,10 @@ fn subdomains_from_scene<'de, D: serde::Deserializer<'de>>(d: D) -> std::result:
     }
 }
 
+fn is_zero(v: &f64) -> bool {
+    *v == 0.0
+}
+
 fn is_auto(subdomains: &usize) -> bool {
     *subdomains == 0
 }
@@ -237,6 +247,7 @@ impl Default for SolverSettings {
             search_direction: SearchDirection::Auto,
             preconditioner: Preconditioner::default(),
             interface_scaling: InterfaceScaling::default(),
+            adaptive_threshold: 0.0,
             partitioner: Partitioner::default(),
         }
     }
@@ -256,6 +267,14 @@ impl SolverSettings {
         }
         if self.max_iterations == 0 {
             return Err(Error::input("solver.max_iterations", None, "must be at least 1"));
+        }
+        let theta = self.adaptive_threshold;
+        if !(theta == 0.0 || (theta > 1.0 && theta.is_finite())) {
+            return Err(Error::input(
+                "solver.adaptive_threshold",
+                None,
+                format!("must be 0 (no adaptive macro columns) or a finite number above 1 (the eigenvalues are at least 1), got {theta}"),
+            ));
         }
         if let SearchDirection::Value(d) = self.search_direction {
             if !(d > 0.0 && d.is_finite()) {

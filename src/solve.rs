@@ -157,6 +157,7 @@ pub fn prepare_in(model: &Model, scene: &Scene, opts: &SolveOptions, placement: 
                     max_iterations: opts.max_iterations,
                     preconditioner: opts.preconditioner,
                     interface_scaling: opts.interface_scaling,
+                    adaptive_threshold: opts.adaptive_threshold,
                 },
                 placement,
             )?))
@@ -412,6 +413,13 @@ pub fn solve_in(
         Prepared::Direct(_) => None,
     };
     if let Some(dd) = last_dd {
+        if opts.adaptive_threshold > 0.0 {
+            let st = dd.stats();
+            notes.push(format!(
+                "adaptive macro space (threshold {}): {} columns added on the faces, {} macro unknowns in all",
+                opts.adaptive_threshold, st.adaptive_columns, st.macro_unknowns
+            ));
+        }
         if let Some(t) = dd.seam().traffic_by_rank() {
             let col = |k: usize| t.iter().map(|r| r[k].to_string()).collect::<Vec<_>>().join(", ");
             notes.push(format!(

@@ -913,6 +913,26 @@ fn scene_level_cg_matches_rust_api_bit_for_bit() {
             o,
             NsddInterfaceScaling::Deluxe as u32,
         ));
+        // The adaptive macro space, bit for bit as in Rust, then off again.
+        opts.adaptive_threshold = 10.0;
+        let want = solve(&big, &opts).unwrap();
+        ok(nsdd_options_set_adaptive_threshold(o, 10.0));
+        let (r, u) = solve_displacements(s, o);
+        let wu: Vec<f64> = want.displacements.iter().flatten().copied().collect();
+        assert_eq!(bits(&u), bits(&wu));
+        let mut it = 0;
+        ok(nsdd_result_iterations(r, &mut it));
+        assert_eq!(it, want.iterations);
+        nsdd_result_destroy(r);
+        for bad in [0.5, 1.0, -1.0, f64::NAN, f64::INFINITY] {
+            expect_err(
+                nsdd_options_set_adaptive_threshold(o, bad),
+                NsddStatus::InvalidArgument,
+                "adaptive_threshold",
+            );
+        }
+        opts.adaptive_threshold = 0.0;
+        ok(nsdd_options_set_adaptive_threshold(o, 0.0));
         nsdd_scene_destroy(s);
         let grid = cstr(root().join("scenes/grid-8x8.toml").to_str().unwrap());
         ok(nsdd_scene_from_file(grid.as_ptr(), &mut s));
@@ -1017,6 +1037,7 @@ fn dd_options(scene_file: &str) -> DdOptions {
         krylov: false,
         preconditioner: Default::default(),
         interface_scaling: Default::default(),
+        adaptive_threshold: 0.0,
     }
 }
 

@@ -869,3 +869,73 @@ fn results_do_not_depend_on_the_thread_count() {
     assert_eq!(one["displacements"], two["displacements"], "the same bits");
     assert_eq!(one["tensions"], two["tensions"]);
 }
+
+/// `--adaptive-threshold` on the README's tower: cg converges in a handful
+/// of iterations, the result notes the columns added and times the set-up
+/// phases (a direct solve has none); a threshold of at most 1 is refused,
+/// naming the field.
+#[test]
+fn adaptive_threshold_flag_and_setup_phases() {
+    let d = tmp("adaptive");
+    let tower = d.join("tower.toml");
+    ok(&nsdd(&[
+        "gen",
+        "tower",
+        "nx=2",
+        "ny=2",
+        "nz=10",
+        "unilateral=false",
+        "--out",
+        s(&tower),
+    ]));
+    let res = d.join("r.json");
+    let out = nsdd(&[
+        "solve",
+        s(&tower),
+        "--method",
+        "cg",
+        "--subdomains",
+        "4",
+        "--adaptive-threshold",
+        "10",
+        "--out",
+        s(&res),
+    ]);
+    ok(&out);
+    let stdout = text(&out.stdout);
+    assert!(stdout.contains("setup       factor"), "{stdout}");
+    let r = read_json(&res);
+    assert_eq!(r["converged"], true);
+    assert!(r["iterations"].as_u64().unwrap() <= 15, "{}", r["iterations"]);
+    let notes: Vec<&str> = r["notes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter_map(|n| n.as_str())
+        .collect();
+    assert!(
+        notes
+            .iter()
+            .any(|n| n.starts_with("adaptive macro space (threshold 10)")),
+        "{notes:?}"
+    );
+    let t = &r["timings_s"];
+    let phases = &t["setup_phases"];
+    let sum: f64 = ["factor", "interior", "scaling", "coarse", "search_direction"]
+        .iter()
+        .map(|k| phases[*k].as_f64().unwrap_or_else(|| panic!("setup_phases lacks {k}")))
+        .sum();
+    assert!(sum <= t["setup"].as_f64().unwrap(), "{t}");
+
+    let res = d.join("direct.json");
+    ok(&nsdd(&["solve", s(&tower), "--method", "direct", "--out", s(&res)]));
+    assert!(read_json(&res)["timings_s"].get("setup_phases").is_none());
+
+    let out = nsdd(&["solve", s(&tower), "--method", "cg", "--adaptive-threshold", "0.5"]);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(
+        text(&out.stderr).contains("solver.adaptive_threshold"),
+        "{}",
+        text(&out.stderr)
+    );
+}

@@ -131,6 +131,7 @@ fn monolevel_solves_singular_subdomains_with_the_natural_coarse_space() {
                 krylov: false,
                 preconditioner: Default::default(),
                 interface_scaling: Default::default(),
+                adaptive_threshold: 0.0,
             },
         )
         .unwrap()
@@ -166,6 +167,7 @@ fn several_load_cases_reuse_one_setup() {
             krylov: false,
             preconditioner: Default::default(),
             interface_scaling: Default::default(),
+            adaptive_threshold: 0.0,
         },
     )
     .unwrap();
@@ -411,6 +413,7 @@ fn interface_cg_refuses_unilateral_cables() {
         search_direction: SearchDirection::Auto,
         preconditioner: Preconditioner::Dirichlet,
         interface_scaling: Default::default(),
+        adaptive_threshold: 0.0,
     };
     match DdSolver::new(&model, &dec, o) {
         Err(Error::MethodNotApplicable(m)) => assert!(m.contains("unilateral") && m.contains("multilevel"), "{m}"),
@@ -442,6 +445,7 @@ fn large_plate_coarse_problem_stays_exact() {
             krylov: true,
             preconditioner: Default::default(),
             interface_scaling: Default::default(),
+            adaptive_threshold: 0.0,
         },
     )
     .unwrap();

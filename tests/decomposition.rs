@@ -38,6 +38,7 @@ fn multilevel(model: &Model, dec: &Decomposition) -> DdSolver {
             krylov: false,
             preconditioner: Default::default(),
             interface_scaling: Default::default(),
+            adaptive_threshold: 0.0,
         },
     )
     .unwrap()

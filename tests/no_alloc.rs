@@ -63,6 +63,7 @@ fn extra_iterations_allocate_nothing() {
             krylov,
             preconditioner,
             interface_scaling: Default::default(),
+            adaptive_threshold: 0.0,
         };
         let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();
         pool.install(|| {
@@ -116,6 +117,7 @@ fn nonsmooth_cg_iterations_allocate_nothing() {
         max_iterations: 10_000,
         preconditioner: Preconditioner::Dirichlet,
         interface_scaling: Default::default(),
+        adaptive_threshold: 0.0,
     };
     let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();
     pool.install(|| {

@@ -340,6 +340,7 @@ fn unchanged_subdomains_are_not_refactored() {
             max_iterations: 100_000,
             preconditioner: Default::default(),
             interface_scaling: Default::default(),
+            adaptive_threshold: 0.0,
         },
     )
     .unwrap();
@@ -518,6 +519,7 @@ fn a_cable_set_that_does_not_settle_is_reported() {
         max_iterations: 100_000,
         preconditioner: Default::default(),
         interface_scaling: Default::default(),
+        adaptive_threshold: 0.0,
     };
     let f = model.load_cases[0].clone();
     let mut cg = NonsmoothCg::new(&model, decompose(&model, &scene, 4).unwrap(), options()).unwrap();

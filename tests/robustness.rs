@@ -740,6 +740,7 @@ fn kernel_dims(scene: &Scene, subdomains: usize) -> Vec<usize> {
             krylov: false,
             preconditioner: Default::default(),
             interface_scaling: Default::default(),
+            adaptive_threshold: 0.0,
         },
     )
     .unwrap();
@@ -828,6 +829,7 @@ fn resolving_reuses_factorizations_bit_identically() {
         krylov: false,
         preconditioner: Default::default(),
         interface_scaling: Default::default(),
+        adaptive_threshold: 0.0,
     };
     let mut dd = DdSolver::new(&model, &dec, o.clone()).unwrap();
     let f = model.load_cases[0].clone();
@@ -1329,6 +1331,7 @@ fn solve_options_given_in_rust_are_checked_like_the_scene() {
             search_direction,
             preconditioner: Default::default(),
             interface_scaling: Default::default(),
+            adaptive_threshold: 0.0,
             partitioner: Default::default(),
         };
         match solve(&scene, &o) {

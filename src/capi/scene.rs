@@ -449,6 +449,29 @@ pub unsafe extern "C" fn nsdd_options_set_interface_scaling(options: *mut NsddOp
     })
 }
 
+/// Sets the threshold of `cg`'s adaptive macro space, overriding the
+/// scene's `[solver] adaptive_threshold`: on every face, the jumps whose
+/// local eigenvalue exceeds it become macro columns (worth it where stiff
+/// bars hang on soft cables; 10 is a good start). 0 switches it off (the
+/// default); other values must be finite and above 1, else
+/// INVALID_ARGUMENT. Ignored by the other methods; refused under MPI.
+///
+/// # Safety
+/// `options` must be a live options handle.
+#[unsafe(no_mangle)]
+pub unsafe extern "C" fn nsdd_options_set_adaptive_threshold(options: *mut NsddOptions, threshold: f64) -> NsddStatus {
+    ffi_guard(|| {
+        let o = unsafe { handle_mut(options, "options")? };
+        if !(threshold == 0.0 || (threshold > 1.0 && threshold.is_finite())) {
+            return Err(invalid(format!(
+                "adaptive_threshold = {threshold}: expected 0 (off) or a finite number above 1"
+            )));
+        }
+        o.opts.adaptive_threshold = threshold;
+        Ok(())
+    })
+}
+
 /// Sets the automatic partitioner, overriding the scene's `[solver]
 /// partitioner`: 0 coordinate bisection, 1 METIS k-way; any other value is
 /// INVALID_ARGUMENT. Ignored by the direct method and when the scene's

@@ -28,6 +28,7 @@ pub fn opts(method: Method, subdomains: usize, tol: f64) -> SolveOptions {
         search_direction: SearchDirection::Auto,
         preconditioner: Default::default(),
         interface_scaling: Default::default(),
+        adaptive_threshold: 0.0,
         partitioner: Default::default(),
     }
 }
