@@ -77,6 +77,7 @@ pub(crate) fn face_sides(
             }
             let ip = interior.as_mut().expect("set above");
             let mut out = Vec::with_capacity(sd.interfaces.len());
+            let mut scratch = Vec::new();
             for &i in &sd.interfaces {
                 let it = &dec.interfaces[i];
                 let local = if it.lo == s {
@@ -96,7 +97,7 @@ pub(crate) fn face_sides(
                         b
                     }
                 };
-                if let Some(neumann) = neumann_block(op, &rows) {
+                if let Some(neumann) = neumann_block(op, &rows, &mut scratch)? {
                     out.push((i, FaceSide { principal, neumann }));
                 }
             }
@@ -124,17 +125,46 @@ fn symmetrize(a: &Mat<f64>) -> Mat<f64> {
     Mat::from_fn(a.nrows(), a.ncols(), |i, j| 0.5 * (a[(i, j)] + a[(j, i)]))
 }
 
-/// `U Λ⁺ Uᵀ`-style pieces of a symmetric matrix: the eigenvectors scaled by
-/// `λ^-½` of the eigenvalues above `rtol` times the largest, so that
-/// `T Tᵀ = A⁺`.
+/// A factor `T` with `T Tᵀ = A⁺` of a symmetric positive semi-definite
+/// `A`, on its eigenvalues above `rtol` times the largest: `L⁻ᵀ` of a
+/// Cholesky factorization when every pivot is above that cut (`n³/3`
+/// flops), else the scaled eigenvectors (an eigendecomposition, ten times
+/// dearer, only where `A` is singular or nearly so).
 fn inverse_root(a: &Mat<f64>, rtol: f64) -> Option<Mat<f64>> {
     let n = a.nrows();
+    if let Ok(llt) = a.llt(faer::Side::Lower) {
+        let l = llt.L();
+        let pivots = (0..n).map(|k| l[(k, k)] * l[(k, k)]);
+        let (lo, hi) = pivots.fold((f64::INFINITY, 0.0f64), |(lo, hi), p| (lo.min(p), hi.max(p)));
+        if lo > rtol * hi && hi.is_finite() {
+            let mut x = Mat::<f64>::identity(n, n);
+            faer::linalg::triangular_solve::solve_lower_triangular_in_place(l, x.as_mut(), faer::Par::Seq);
+            return Some(x.transpose().to_owned());
+        }
+    }
     let evd = a.self_adjoint_eigen(faer::Side::Lower).ok()?;
     let (u, s) = (evd.U(), evd.S().column_vector());
     let smax = (0..n).map(|k| s[k].abs()).fold(0.0f64, f64::max);
     let keep: Vec<usize> = (0..n).filter(|&k| s[k] > rtol * smax).collect();
     Some(Mat::from_fn(n, keep.len(), |i, j| u[(i, keep[j])] / s[keep[j]].sqrt()))
 }
+
+/// An orthonormal basis of the complement of the span of `a` (`n × k`,
+/// any rank): the trailing columns of the full `Q` of a QR factorization
+/// of an orthonormal basis of that span.
+fn complement(a: &Mat<f64>) -> Mat<f64> {
+    let n = a.nrows();
+    let basis = orthonormal_columns(a, SPAN_RTOL);
+    let r = basis.ncols();
+    if r == 0 {
+        return Mat::identity(n, n);
+    }
+    let q = basis.qr().compute_Q();
+    q.subcols(r, n - r).to_owned()
+}
+
+/// Rank cut of the spans whose complements [`complement`] takes.
+const SPAN_RTOL: f64 = 1e-8;
 
 /// `A : B = A − A (A + B)⁺ A` for symmetric positive semi-definite `A`, `B`.
 fn parallel_sum(a: &Mat<f64>, b: &Mat<f64>) -> Option<Mat<f64>> {
@@ -143,21 +173,16 @@ fn parallel_sum(a: &Mat<f64>, b: &Mat<f64>) -> Option<Mat<f64>> {
     Some(symmetrize(&(a - ta.transpose() * &ta)))
 }
 
-/// The Neumann block `S̃` of `op` on its local dofs `rows`: the Schur
+/// The Neumann block `S̃` of `op` on its local dofs `rows` (`None` if an
+/// eigensolve failed): the Schur
 /// complement of `K` on them with every other dof free, from the
-/// flexibility `F = R K⁺ Rᵀ` (one batched solve with the subdomain's own
-/// factor, no new factorization). Loads balanced against the kernel `N`
+/// flexibility `F = R K⁺ Rᵀ` (forward substitutions with the subdomain's
+/// own factor and a product, no new factorization). Loads balanced against the kernel `N`
 /// have `S̃ F λ = λ`, and `S̃` vanishes on the kernel's traces, so `S̃ = (Π
 /// F Π)⁺` with `Π` the projector off those traces (inverted on its range).
-pub fn neumann_block(op: &mut SubdomainOperator, rows: &[u32]) -> Option<Mat<f64>> {
-    let (n, m) = (op.n(), rows.len());
-    let mut w = vec![0.0; n * m];
-    for (c, &r) in rows.iter().enumerate() {
-        w[c * n + r as usize] = 1.0;
-    }
-    op.solve_columns(&mut w, m);
-    let f = symmetrize(&Mat::from_fn(m, m, |a, c| w[c * n + rows[a] as usize]));
-    drop(w);
+pub fn neumann_block(op: &mut SubdomainOperator, rows: &[u32], scratch: &mut Vec<f64>) -> Result<Option<Mat<f64>>> {
+    let m = rows.len();
+    let f = op.flexibility_block(rows, scratch)?;
     // Inverted on the complement of the kernel traces only: a relative cut
     // there would take the stiffest directions (the smallest flexibilities,
     // 1e-10 of the largest behind a 1e4 contrast) for null ones.
@@ -165,19 +190,14 @@ pub fn neumann_block(op: &mut SubdomainOperator, rows: &[u32]) -> Option<Mat<f64
     let c = if kernel.ncols() == 0 {
         Mat::<f64>::identity(m, m)
     } else {
-        let traces = Mat::from_fn(m, kernel.ncols(), |a, q| kernel[(rows[a] as usize, q)]);
-        let t = orthonormal_columns(&traces, PINV_RTOL);
-        let evd = symmetrize(&(&t * t.transpose()))
-            .self_adjoint_eigen(faer::Side::Lower)
-            .ok()?;
-        let (u, s) = (evd.U(), evd.S().column_vector());
-        let keep: Vec<usize> = (0..m).filter(|&k| s[k] < 0.5).collect();
-        Mat::from_fn(m, keep.len(), |i, j| u[(i, keep[j])])
+        complement(&Mat::from_fn(m, kernel.ncols(), |a, q| kernel[(rows[a] as usize, q)]))
     };
     let fc = symmetrize(&(c.transpose() * &f * &c));
-    let root = inverse_root(&fc, FLEXIBILITY_RTOL)?;
+    let Some(root) = inverse_root(&fc, FLEXIBILITY_RTOL) else {
+        return Ok(None);
+    };
     let cr = &c * &root;
-    Some(&cr * cr.transpose())
+    Ok(Some(&cr * cr.transpose()))
 }
 
 /// Eigenvalues of a face flexibility (kernel traces removed) below this
@@ -234,13 +254,7 @@ pub fn face_modes(lo: &FaceSide, hi: &FaceSide, p: &Mat<f64>, theta: f64) -> Res
     let a = parallel_sum(&lo.principal, &hi.principal).ok_or_else(fail)?;
     let b = parallel_sum(&lo.neumann, &hi.neumann).ok_or_else(fail)?;
     // Q: orthonormal complement of the span of p.
-    let evd = symmetrize(&(p * p.transpose()))
-        .self_adjoint_eigen(faer::Side::Lower)
-        .map_err(|_| fail())?;
-    let (u, s) = (evd.U(), evd.S().column_vector());
-    let smax = (0..n).map(|k| s[k]).fold(0.0f64, f64::max);
-    let qcols: Vec<usize> = (0..n).filter(|&k| !(s[k] > 1e-8 * smax)).collect();
-    let q = Mat::from_fn(n, qcols.len(), |i, j| u[(i, qcols[j])]);
+    let q = complement(p);
     let aq = symmetrize(&(q.transpose() * &a * &q));
     let bq = symmetrize(&(q.transpose() * &b * &q));
     // Bq = T⁻ᵀ T⁻¹ on its range: the eigenproblem becomes Tᵀ Aq T y = λ y.

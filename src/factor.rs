@@ -509,6 +509,11 @@ impl SparseCholesky {
         });
     }
 
+    /// Columns per block of the batched solves (see [`Self::set_max_rhs`]).
+    pub fn max_rhs(&self) -> usize {
+        self.scratch_cols
+    }
+
     /// Resizes the solve scratch for blocks of `k` columns (set-up only:
     /// batched solves, then back to the iteration's width).
     pub fn set_max_rhs(&mut self, k: usize) -> Result<(), FactorError> {

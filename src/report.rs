@@ -115,6 +115,9 @@ pub fn summary(scene: &Scene, r: &SolveResult) -> String {
             "setup       factor {:.4} s, interior {:.4} s, scaling {:.4} s, coarse {:.4} s, d {:.4} s",
             p.factor, p.interior, p.scaling, p.coarse, p.search_direction
         );
+        if p.adaptive > 0.0 {
+            let _ = writeln!(s, "            adaptive macro columns {:.4} s", p.adaptive);
+        }
     }
     match max_displacement(&r.displacements) {
         Some((n, m)) => {

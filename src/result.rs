@@ -43,6 +43,10 @@ pub struct SetupPhases {
     pub scaling: f64,
     /// Macro basis, coarse operator and its factorization.
     pub coarse: f64,
+    /// cg's adaptive macro columns (their interior factors and face
+    /// blocks, which the deluxe weights then take over, included).
+    #[serde(default)]
+    pub adaptive: f64,
     /// The stationary methods' choice of `d`.
     pub search_direction: f64,
 }

@@ -447,6 +447,7 @@ pub fn solve_in(
                 interior: st.interior_s,
                 scaling: st.scaling_s,
                 coarse: st.coarse_s,
+                adaptive: st.adaptive_s,
                 search_direction: st.search_direction_s,
             })
         }

@@ -403,6 +403,39 @@ impl SubdomainOperator {
         self.chol.solve_columns(data, k);
     }
 
+    /// `R K⁺ Rᵀ` on the local dofs `rows` (`rows.len()` square): the
+    /// flexibility of those dofs with the rest of the subdomain free, by
+    /// forward substitution alone (`W = L⁻¹ P Rᵀ`, skipping the rows of `L`
+    /// no column reaches) and the product `Wᵀ W` over the reached rows.
+    /// Fixing dofs among `rows` get zero rows and columns, as `K⁺` gives.
+    /// Set-up only: `w` holds the `n × rows.len()` values of `W` (kept by
+    /// the caller between faces: a fresh block of tens of MB per face cost
+    /// page faults and TLB shootdowns at every free); the solve scratch is
+    /// widened for blocks of [`SCHUR_BLOCK_RHS`] columns, then restored.
+    pub fn flexibility_block(&mut self, rows: &[u32], w: &mut Vec<f64>) -> Result<Mat<f64>> {
+        let (n, m) = (self.n(), rows.len());
+        w.clear();
+        w.resize(n * m, 0.0);
+        for (c, &r) in rows.iter().enumerate() {
+            w[c * n + r as usize] = 1.0;
+        }
+        for c in 0..m {
+            for &f in &self.fixing {
+                w[c * n + f] = 0.0;
+            }
+        }
+        let internal = |e: FactorError| Error::Numerical(format!("subdomain {}: {e:?}", self.id));
+        let width = self.chol.max_rhs();
+        self.chol.set_max_rhs(SCHUR_BLOCK_RHS.min(m.max(1))).map_err(internal)?;
+        self.chol.forward_columns(w, m);
+        self.chol.set_max_rhs(width).map_err(internal)?;
+        let reached = reached_rows(w, n, m);
+        compact_rows(w, n, m, &reached);
+        let mut f = Mat::<f64>::zeros(m, m);
+        subtract_gram(&mut f, w, reached.len());
+        Ok(-f)
+    }
+
     /// Diagonal of `K_E`.
     pub fn diagonal(&self) -> Vec<f64> {
         lower_diagonal(&self.stiffness)
@@ -812,28 +845,14 @@ impl InteriorProblem {
             w.resize(ni * nf, 0.0);
             scatter_columns(&kif, &mut w, ni);
             chol.forward_columns(&mut w, nf);
-            let mut reached = vec![false; ni];
-            for col in w.chunks(ni) {
-                for (r, &v) in reached.iter_mut().zip(col) {
-                    *r |= v != 0.0;
-                }
-            }
-            let rows_w: Vec<usize> = (0..ni).filter(|&r| reached[r]).collect();
+            let reached = reached_rows(&w, ni, nf);
             // Then either S −= Wᵀ W over the reached rows (a dense product,
-            // nz·nf² multiply-adds) or the backward substitutions and the
-            // sparse product K_FI X (≈ 2 nnz(L)·nf at the triangular
-            // solve's lower speed): see SCHUR_PRODUCT_RATIO.
-            if rows_w.len() * nf <= product_ratio.saturating_mul(chol.nnz_l()) {
-                // Compact the reached rows in place (each value moves to a
-                // lower index, column by column).
-                let nz = rows_w.len();
-                for c in 0..nf {
-                    for (k, &r) in rows_w.iter().enumerate() {
-                        w[c * nz + k] = w[c * ni + r];
-                    }
-                }
-                let wc = faer::MatRef::from_column_major_slice(&w[..nz * nf], nz, nf);
-                faer::linalg::matmul::matmul(s.as_mut(), faer::Accum::Add, wc.transpose(), wc, -1.0, faer::Par::Seq);
+            // nz·nf²/2 multiply-adds for its lower triangle) or the backward
+            // substitutions and the sparse product K_FI X (≈ 2 nnz(L)·nf at
+            // the triangular solve's lower speed): see SCHUR_PRODUCT_RATIO.
+            if reached.len() * nf <= product_ratio.saturating_mul(chol.nnz_l()) {
+                compact_rows(&mut w, ni, nf, &reached);
+                subtract_gram(&mut s, &w, reached.len());
             } else {
                 chol.backward_columns(&mut w, nf);
                 subtract_products(&mut s, &kif, &w, ni, 0);
@@ -851,6 +870,54 @@ impl InteriorProblem {
         }
         chol.set_max_rhs(1).map_err(internal)?;
         Ok(s)
+    }
+}
+
+/// `S −= Wᵀ W` for the column-major `W` (`rows × cols`, `cols` the order
+/// of `S`): the lower triangle by a triangular product (half the flops of
+/// the full one), then mirrored. `S` must be symmetric on entry.
+fn subtract_gram(s: &mut Mat<f64>, w: &[f64], rows: usize) {
+    let cols = s.ncols();
+    let wc = faer::MatRef::from_column_major_slice(&w[..rows * cols], rows, cols);
+    faer::linalg::matmul::triangular::matmul(
+        s.as_mut(),
+        faer::linalg::matmul::triangular::BlockStructure::TriangularLower,
+        faer::Accum::Add,
+        wc.transpose(),
+        faer::linalg::matmul::triangular::BlockStructure::Rectangular,
+        wc,
+        faer::linalg::matmul::triangular::BlockStructure::Rectangular,
+        -1.0,
+        faer::Par::Seq,
+    );
+    for j in 0..cols {
+        for i in 0..j {
+            s[(i, j)] = s[(j, i)];
+        }
+    }
+}
+
+/// The rows of the column-major `w` (`n` rows, `k` columns) that some
+/// column reaches (a non-zero), increasing.
+fn reached_rows(w: &[f64], n: usize, k: usize) -> Vec<usize> {
+    let mut reached = vec![false; n];
+    for col in w[..n * k].chunks(n) {
+        for (r, &v) in reached.iter_mut().zip(col) {
+            *r |= v != 0.0;
+        }
+    }
+    (0..n).filter(|&r| reached[r]).collect()
+}
+
+/// Moves the rows `rows` (increasing) of the column-major `w` (`n` rows,
+/// `k` columns) to the head of `w`, as a `rows.len() × k` block (each value
+/// moves to a lower index, column by column).
+fn compact_rows(w: &mut [f64], n: usize, k: usize, rows: &[usize]) {
+    let nz = rows.len();
+    for c in 0..k {
+        for (i, &r) in rows.iter().enumerate() {
+            w[c * nz + i] = w[c * n + r];
+        }
     }
 }
 
@@ -877,8 +944,10 @@ fn subtract_products(s: &mut Mat<f64>, kif: &[Vec<(u32, f64)>], x: &[f64], ni: u
 
 /// [`InteriorProblem::schur_block`] forms `Wᵀ W` over the `nz` rows its
 /// face reaches when `nz·nf` is at most this many times `nnz(L)`, and
-/// finishes the solves by backward substitution otherwise.
-pub const SCHUR_PRODUCT_RATIO: usize = 2;
+/// finishes the solves by backward substitution otherwise. 4 since the
+/// product forms only its lower triangle (2 before): the deluxe blocks of
+/// the 30³ tower with 16 subdomains took 3.1 s instead of 3.55 s.
+pub const SCHUR_PRODUCT_RATIO: usize = 4;
 
 /// Columns per batched interior solve of [`InteriorProblem::schur_block`].
 pub const SCHUR_BLOCK_RHS: usize = 32;

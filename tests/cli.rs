@@ -921,10 +921,18 @@ fn adaptive_threshold_flag_and_setup_phases() {
     );
     let t = &r["timings_s"];
     let phases = &t["setup_phases"];
-    let sum: f64 = ["factor", "interior", "scaling", "coarse", "search_direction"]
-        .iter()
-        .map(|k| phases[*k].as_f64().unwrap_or_else(|| panic!("setup_phases lacks {k}")))
-        .sum();
+    assert!(phases["adaptive"].as_f64().unwrap() > 0.0, "{t}");
+    let sum: f64 = [
+        "factor",
+        "interior",
+        "scaling",
+        "coarse",
+        "adaptive",
+        "search_direction",
+    ]
+    .iter()
+    .map(|k| phases[*k].as_f64().unwrap_or_else(|| panic!("setup_phases lacks {k}")))
+    .sum();
     assert!(sum <= t["setup"].as_f64().unwrap(), "{t}");
 
     let res = d.join("direct.json");
