@@ -514,7 +514,7 @@ enum NsddStatus nsdd_options_set_interface_scaling(struct NsddOptions *options, 
  * Sets the threshold of `cg`'s adaptive macro space, overriding the
  * scene's `[solver] adaptive_threshold`: on every face, the jumps whose
  * local eigenvalue exceeds it become macro columns (worth it where stiff
- * bars hang on soft cables; 10 is a good start). 0 switches it off (the
+ * bars hang on soft cables; 5 is a good start). 0 switches it off (the
  * default); other values must be finite and above 1, else
  * INVALID_ARGUMENT. Ignored by the other methods; refused under MPI.
  *

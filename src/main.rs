@@ -176,7 +176,7 @@ struct SolveArgs {
     /// Weights of cg's preconditioner across interfaces: deluxe (default), contrast, multiplicity, stiffness or none
     #[arg(long, value_name = "S", value_parser = parse_interface_scaling)]
     interface_scaling: Option<InterfaceScaling>,
-    /// Adaptive macro space of cg: eigenvalue threshold above which a face's jump modes become macro columns (0: none, the default; try 10 where stiff bars hang on soft cables)
+    /// Adaptive macro space of cg: eigenvalue threshold above which a face's jump modes become macro columns (0: none, the default; try 5 where stiff bars hang on soft cables)
     #[arg(long, value_name = "THETA")]
     adaptive_threshold: Option<f64>,
     /// Write the result JSON here (also when not converged: its `status` says why; not after an error or divergence)
