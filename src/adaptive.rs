@@ -1,8 +1,9 @@
-//! Adaptive enrichment of the macro space (docs/design.md §4): per
-//! interface, the jumps the preconditioner cannot bound, found by a small
-//! generalized eigenproblem on the interface, become extra macro columns.
+//! Adaptive enrichment of the macro space (docs/design.md §4): per face,
+//! the jumps the preconditioner cannot bound, found by a small generalized
+//! eigenproblem on the face, become extra macro columns of its interface.
 //!
-//! For the pair `(k, l)` of an interface with entries `E`, let `S_k` be the
+//! For the face `E` of the interface of subdomains `k` and `l` (its
+//! entries no third subdomain shares), let `S_k` be the
 //! principal block on `E` of subdomain `k`'s Schur complement on its whole
 //! interface (the other interface dofs held: what the deluxe weights use)
 //! and `S̃_k` the Schur complement of `K_k` on `E` alone (everything else
@@ -217,13 +218,14 @@ pub fn principal_block(ip: &mut InteriorProblem, op: &SubdomainOperator, rows: &
 /// keep the blocks of different interfaces on disjoint entries, so that
 /// they cannot repeat each other at cross points (on the edges they do,
 /// and cg broke down when they were allowed there).
-pub fn enrich(p: Mat<f64>, face: &[usize], lo: &FaceSide, hi: &FaceSide, theta: f64) -> Result<(Mat<f64>, usize)> {
+pub fn enrich(p: Mat<f64>, face: &[usize], lo: &FaceSide, hi: &FaceSide, theta: f64) -> (Mat<f64>, usize) {
     let n = p.nrows();
     let pf = Mat::from_fn(face.len(), p.ncols(), |i, j| p[(face[i], j)]);
-    let extra = face_modes(lo, hi, &pf, theta)?;
-    if extra.ncols() == 0 {
-        return Ok((p, 0));
-    }
+    // A failed eigensolve leaves the face without adaptive columns.
+    let extra = match face_modes(lo, hi, &pf, theta) {
+        Ok(extra) if extra.ncols() > 0 => extra,
+        _ => return (p, 0),
+    };
     // The constraints are orthogonal to `p` on the face already; their own
     // basis drops near-repeats, which add nothing but conditioning trouble
     // to the coarse problem.
@@ -238,7 +240,7 @@ pub fn enrich(p: Mat<f64>, face: &[usize], lo: &FaceSide, hi: &FaceSide, theta: 
     }
     let all = orthonormal_columns(&all, MACRO_RANK_RTOL);
     let added = all.ncols().saturating_sub(m);
-    Ok((all, added))
+    (all, added)
 }
 
 /// The constraints (`face × k`, orthogonal to the columns of `p`, not

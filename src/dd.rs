@@ -668,12 +668,12 @@ impl DdSolver {
                 .enumerate()
                 .map(|(i, ((it, st), [tl, th]))| {
                     if !touched(st) {
-                        return Ok(None);
+                        return None;
                     }
                     let n = it.len();
                     let tlo = Mat::from_fn(n, kernel_dims[it.lo], |j, q| tl[q * n + j]);
                     let thi = Mat::from_fn(n, kernel_dims[it.hi], |j, q| th[q * n + j]);
-                    Ok(Some(if natural_only {
+                    Some(if natural_only {
                         // No geometric modes: no dof points needed (the
                         // algebraic level may not have them).
                         MacroBasis::kernel_block(&tlo, &thi)
@@ -683,16 +683,15 @@ impl DdSolver {
                         let p = MacroBasis::interface_block(&points, &comp, &tlo, &thi);
                         match face_sides.get(i) {
                             Some([Some(lo), Some(hi)]) => {
-                                let (p, added) =
-                                    adaptive::enrich(p, &face_entries[i], lo, hi, opts.adaptive_threshold)?;
+                                let (p, added) = adaptive::enrich(p, &face_entries[i], lo, hi, opts.adaptive_threshold);
                                 n_adaptive.fetch_add(added, std::sync::atomic::Ordering::Relaxed);
                                 p
                             }
                             _ => p,
                         }
-                    }))
+                    })
                 })
-                .collect::<Result<_>>()?;
+                .collect();
             drop(traces);
             adaptive_columns = n_adaptive.into_inner();
             if adaptive_on {
