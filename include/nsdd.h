@@ -516,7 +516,7 @@ enum NsddStatus nsdd_options_set_interface_scaling(struct NsddOptions *options, 
  * local eigenvalue exceeds it become macro columns (worth it where stiff
  * bars hang on soft cables; 5 is a good start). 0 switches it off (the
  * default); other values must be finite and above 1, else
- * INVALID_ARGUMENT. Ignored by the other methods; refused under MPI.
+ * INVALID_ARGUMENT. Ignored by the other methods.
  *
  * # Safety
  * `options` must be a live options handle.

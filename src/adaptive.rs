@@ -34,6 +34,35 @@ pub struct FaceSide {
     pub neumann: Mat<f64>,
 }
 
+impl FaceSide {
+    /// Both blocks as one message: the order, then each block column-major.
+    pub fn pack(&self) -> Vec<f64> {
+        let n = self.principal.nrows();
+        let mut out = Vec::with_capacity(1 + 2 * n * n);
+        out.push(n as f64);
+        for m in [&self.principal, &self.neumann] {
+            for j in 0..n {
+                out.extend((0..n).map(|i| m[(i, j)]));
+            }
+        }
+        out
+    }
+
+    /// The side [`FaceSide::pack`] sent; `None` for an empty message (no
+    /// side there).
+    pub fn unpack(msg: &[f64]) -> Option<FaceSide> {
+        let n = *msg.first()? as usize;
+        if msg.len() != 1 + 2 * n * n {
+            return None;
+        }
+        let block = |k: usize| Mat::from_fn(n, n, |i, j| msg[1 + k * n * n + j * n + i]);
+        Some(FaceSide {
+            principal: block(0),
+            neumann: block(1),
+        })
+    }
+}
+
 /// The face of every interface: its entries no third subdomain shares
 /// (multiplicity 2), in entry order.
 pub fn face_entries(dec: &Decomposition) -> Vec<Vec<usize>> {

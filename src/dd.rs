@@ -561,14 +561,6 @@ impl DdSolver {
             )));
         }
         seam.agree(Ok(()))?;
-        if opts.adaptive_threshold > 0.0 && owned.len() != ns {
-            // Each face's eigenproblem needs both of its subdomains' operators.
-            return seam.agree(Err(Error::MethodNotApplicable(
-                "solver.adaptive_threshold: the adaptive macro space needs both subdomains of every interface in one \
-                 process, not yet the case under MPI; set it to 0"
-                    .into(),
-            )));
-        }
         // Kernel dimensions of every subdomain (each process factored its own).
         let local_dims: Vec<f64> = operators.iter().map(|o| o.kernel_dim() as f64).collect();
         let kernel_dims: Vec<usize> = seam.gather(&local_dims).into_iter().map(|d| d as usize).collect();
@@ -654,7 +646,19 @@ impl DdSolver {
             let (face_entries, face_sides) = if adaptive_on {
                 let entries = adaptive::face_entries(dec);
                 let pool = pooled.get_or_insert_with(|| (0..owned.len()).map(|_| (None, Vec::new())).collect());
-                let sides = adaptive::face_sides(dec, first, &mut operators, pool, &entries)?;
+                let held = seam.agree(adaptive::face_sides(dec, first, &mut operators, pool, &entries))?;
+                // Each face's two sides where either is held (from the
+                // neighbour's process under MPI; copies in one process).
+                let sides = seam.exchange(|i, is_lo| {
+                    held[i][usize::from(!is_lo)]
+                        .as_ref()
+                        .map_or_else(Vec::new, adaptive::FaceSide::pack)
+                });
+                drop(held);
+                let sides = sides
+                    .iter()
+                    .map(|[lo, hi]| [adaptive::FaceSide::unpack(lo), adaptive::FaceSide::unpack(hi)])
+                    .collect();
                 (entries, sides)
             } else {
                 (Vec::new(), Vec::new())

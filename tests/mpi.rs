@@ -197,6 +197,21 @@ fn tower_with_floating_subdomains_on_2_3_ranks() {
     check_all(&scene, "tower", &[(Method::Cg, 5)], &[2, 3]);
 }
 
+/// The adaptive macro space: each face's two sides meet across ranks (the
+/// README's contrast tower, 4 subdomains on 2 and 3 ranks).
+#[test]
+fn adaptive_macro_space_on_2_3_ranks() {
+    let mut scene = nsdd::generate::tower(&nsdd::generate::TowerParams {
+        nx: 2,
+        ny: 2,
+        nz: 10,
+        unilateral: false,
+        ..Default::default()
+    });
+    scene.solver.adaptive_threshold = 5.0;
+    check_all(&scene, "adaptive", &[(Method::Cg, 4)], &[2, 3]);
+}
+
 #[test]
 fn load_path_and_load_cases_on_2_ranks() {
     let mut scene = grid(&GridParams {
