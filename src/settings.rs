@@ -223,6 +223,13 @@ fn subdomains_from_scene<'de, D: serde::Deserializer<'de>>(d: D) -> std::result:
     }
 }
 
+/// Whether `theta` is a valid `adaptive_threshold`: 0 (off) or finite and
+/// above 1 (every face eigenvalue is at least 1). Checked by
+/// [`SolverSettings::validate`] and the C setter.
+pub(crate) fn adaptive_threshold_is_valid(theta: f64) -> bool {
+    theta == 0.0 || (theta > 1.0 && theta.is_finite())
+}
+
 fn is_zero(v: &f64) -> bool {
     *v == 0.0
 }
@@ -269,7 +276,7 @@ impl SolverSettings {
             return Err(Error::input("solver.max_iterations", None, "must be at least 1"));
         }
         let theta = self.adaptive_threshold;
-        if !(theta == 0.0 || (theta > 1.0 && theta.is_finite())) {
+        if !adaptive_threshold_is_valid(theta) {
             return Err(Error::input(
                 "solver.adaptive_threshold",
                 None,

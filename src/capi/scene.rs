@@ -462,7 +462,7 @@ pub unsafe extern "C" fn nsdd_options_set_interface_scaling(options: *mut NsddOp
 pub unsafe extern "C" fn nsdd_options_set_adaptive_threshold(options: *mut NsddOptions, threshold: f64) -> NsddStatus {
     ffi_guard(|| {
         let o = unsafe { handle_mut(options, "options")? };
-        if !(threshold == 0.0 || (threshold > 1.0 && threshold.is_finite())) {
+        if !crate::settings::adaptive_threshold_is_valid(threshold) {
             return Err(invalid(format!(
                 "adaptive_threshold = {threshold}: expected 0 (off) or a finite number above 1"
             )));
