@@ -70,6 +70,52 @@ pub fn direct_profile(scene: &Scene) -> Result<DirectProfile> {
     })
 }
 
+/// What the direct solver would need for one scene, from its ordering and
+/// symbolic analysis alone: `nnz(L)` is known before any numeric work, so
+/// a structure whose factor does not fit in memory is reported without
+/// trying to factor it.
+#[derive(Debug, Clone, Serialize)]
+pub struct DirectAnalysis {
+    pub dofs: usize,
+    pub nnz_k: usize,
+    pub nnz_l: usize,
+    /// Fill-reducing ordering the direct solver would use (`"amd"` or
+    /// `"nested_dissection"`: the smaller `nnz(L)`, as in [`direct_profile`]).
+    pub ordering: String,
+    /// Assembly of `K`.
+    pub assembly_s: f64,
+    /// Ordering choice and symbolic analysis.
+    pub analysis_s: f64,
+    /// Bytes of `K` (lower CSC) plus `L` values: a lower bound on what the
+    /// factorization needs (its dense update blocks come on top).
+    pub matrix_and_factor_bytes: u64,
+    /// Peak resident memory of this process (the analysis only).
+    pub peak_bytes: Option<u64>,
+}
+
+/// Assembles `K` and runs the direct solver's ordering choice and symbolic
+/// analysis only (no numeric factorization).
+pub fn direct_analysis(scene: &Scene) -> Result<DirectAnalysis> {
+    let model = Model::from_scene(scene)?;
+    let t = Instant::now();
+    let k = crate::direct::assemble(&model)?;
+    let assembly_s = t.elapsed().as_secs_f64();
+    let t = Instant::now();
+    let (nnz_l, kind) = crate::factor::analyse(&k).map_err(|e| crate::error::Error::Numerical(format!("{e:?}")))?;
+    let analysis_s = t.elapsed().as_secs_f64();
+    let nnz_k = k.compute_nnz();
+    Ok(DirectAnalysis {
+        dofs: model.n_free,
+        nnz_k,
+        nnz_l,
+        ordering: kind.name().to_string(),
+        assembly_s,
+        analysis_s,
+        matrix_and_factor_bytes: (nnz_k * 16 + (model.n_free + 1) * 8 + nnz_l * 8) as u64,
+        peak_bytes: peak_memory_bytes(),
+    })
+}
+
 /// Cost of the DD iteration on one scene and decomposition.
 #[derive(Debug, Clone, Serialize)]
 pub struct DdProfile {

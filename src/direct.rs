@@ -26,6 +26,7 @@ use crate::error::{Error, Result};
 use crate::factor::{lower_csc, FactorError, OrderingKind, SparseCholesky, PIVOT_RATIO};
 use crate::model::Model;
 use faer::linalg::solvers::Solve;
+use faer::sparse::SparseColMat;
 use faer::Mat;
 use std::collections::HashSet;
 
@@ -92,6 +93,13 @@ pub(crate) fn mechanism_error(model: &Model, dof: usize, what: &str) -> Error {
     ))
 }
 
+/// The lower triangle of the whole structure's `K` (every element, CSC).
+pub(crate) fn assemble(model: &Model) -> Result<SparseColMat<usize, f64>> {
+    let all: Vec<usize> = (0..model.elements.len()).collect();
+    let trip = model.stiffness_triplets(&all, Some);
+    lower_csc(model.n_free, &trip).map_err(|e| Error::Numerical(format!("{e:?}")))
+}
+
 /// Factorization of the whole structure plus the cable active-set cache.
 pub struct DirectSolver {
     chol: SparseCholesky,
@@ -116,9 +124,7 @@ impl DirectSolver {
     /// Assembles `K` and factors it once.
     pub fn new(model: &Model) -> Result<DirectSolver> {
         let t = std::time::Instant::now();
-        let all: Vec<usize> = (0..model.elements.len()).collect();
-        let trip = model.stiffness_triplets(&all, Some);
-        let k = lower_csc(model.n_free, &trip).map_err(|e| Error::Numerical(format!("{e:?}")))?;
+        let k = assemble(model)?;
         let assembly_s = t.elapsed().as_secs_f64();
         if model.n_free == 0 {
             return Err(Error::Mechanism("every dof is blocked: nothing to solve".into()));

@@ -782,6 +782,14 @@ impl EliminationOrder {
     }
 }
 
+/// `nnz(L)` and the ordering a factorization of `lower` would use
+/// ([`OrderingChoice::Auto`], as [`SparseCholesky::factor`]), from the
+/// symbolic analysis alone.
+pub fn analyse(lower: &SparseColMat<usize, f64>) -> Result<(usize, OrderingKind), FactorError> {
+    let (order, symbolic) = EliminationOrder::choose(lower, None, OrderingChoice::Auto)?;
+    Ok((symbolic.len_val(), order.kind))
+}
+
 /// Multiple of faer's flops-per-entry test (supernodal when the
 /// factorization costs more than 40 flops per entry of `L`) from which a
 /// subdomain factor of the DD set-up ([`EliminationOrder::for_set_up`]) is

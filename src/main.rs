@@ -264,6 +264,11 @@ struct BenchArgs {
     /// ordering, phase timings, peak memory) instead of the table
     #[arg(long)]
     json: bool,
+    /// With `direct SCENE`: stop after the ordering and symbolic analysis
+    /// and report nnz(L) and the memory the factor needs, without factoring
+    /// (for structures whose factor may not fit)
+    #[arg(long)]
+    analyse: bool,
     /// Grid sizes (nx = ny) of the generated double-layer grids, increasing
     #[arg(long, value_delimiter = ',', default_value = "40,130", value_parser = parse_count, allow_hyphen_values = true)]
     sizes: Vec<usize>,
@@ -826,6 +831,9 @@ fn cmd_scaling(a: ScalingArgs) -> Result<i32> {
 fn bench_direct_scene(a: &BenchArgs) -> Result<i32> {
     let path = a.scene.as_ref().expect("checked by the caller");
     let scene = Scene::load(path)?;
+    if a.analyse {
+        return bench_direct_analysis(a, path, &scene);
+    }
     let p = nsdd::bench::direct_profile(&scene)?;
     let json = serde_json::to_string(&p).expect("serializable");
     if a.json {
@@ -856,6 +864,40 @@ fn bench_direct_scene(a: &BenchArgs) -> Result<i32> {
     Ok(0)
 }
 
+/// `nsdd bench direct SCENE --analyse [--json]`: what the direct solver
+/// would need, from its symbolic analysis.
+fn bench_direct_analysis(a: &BenchArgs, path: &std::path::Path, scene: &Scene) -> Result<i32> {
+    let p = nsdd::bench::direct_analysis(scene)?;
+    let json = serde_json::to_string(&p).expect("serializable");
+    if a.json {
+        println!("{json}");
+    } else {
+        let gib = |b: u64| b as f64 / (1024.0 * 1024.0 * 1024.0);
+        println!("scene      {}", path.display());
+        println!("dofs       {}", p.dofs);
+        println!("nnz(K)     {}", p.nnz_k);
+        println!("nnz(L)     {} (symbolic analysis, not factored)", p.nnz_l);
+        println!("ordering   {}", p.ordering);
+        println!("assembly   {:.3} s", p.assembly_s);
+        println!(
+            "analysis   {:.3} s (ordering choice and symbolic analysis)",
+            p.analysis_s
+        );
+        println!(
+            "K+L        {:.2} GiB (at least, for the factorization)",
+            gib(p.matrix_and_factor_bytes)
+        );
+        println!(
+            "peak       {:.2} GiB (this analysis)",
+            p.peak_bytes.map_or(f64::NAN, gib)
+        );
+    }
+    if let Some(out) = &a.out {
+        std::fs::write(out, format!("{json}\n")).map_err(|e| Error::Io(format!("{}: {e}", out.display())))?;
+    }
+    Ok(0)
+}
+
 fn cmd_bench(a: BenchArgs) -> Result<i32> {
     let mut rows: Vec<String> = Vec::new();
     let scene_of = |n: usize| {
@@ -869,6 +911,13 @@ fn cmd_bench(a: BenchArgs) -> Result<i32> {
     };
     if a.what == "direct" && a.scene.is_some() {
         return bench_direct_scene(&a);
+    }
+    if a.analyse {
+        return Err(Error::input(
+            "--analyse",
+            None,
+            "applies to `nsdd bench direct SCENE` only".to_string(),
+        ));
     }
     if a.what == "direct" {
         println!(

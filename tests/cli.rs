@@ -947,3 +947,38 @@ fn adaptive_threshold_flag_and_setup_phases() {
         text(&out.stderr)
     );
 }
+
+#[test]
+fn direct_analysis_predicts_the_factor_without_factoring() {
+    let d = tmp("analyse");
+    let tower = d.join("tower.toml");
+    ok(&nsdd(&[
+        "gen",
+        "tower",
+        "nx=8",
+        "ny=8",
+        "nz=8",
+        "unilateral=false",
+        "--out",
+        s(&tower),
+    ]));
+    let json = |args: &[&str]| -> Value {
+        let out = nsdd(args);
+        ok(&out);
+        serde_json::from_str(&text(&out.stdout)).unwrap()
+    };
+    let factored = json(&["bench", "direct", s(&tower), "--json"]);
+    let analysed = json(&["bench", "direct", s(&tower), "--analyse", "--json"]);
+    // The symbolic analysis is the factorization's own: same order, same fill.
+    for key in ["dofs", "nnz_k", "nnz_l", "ordering"] {
+        assert_eq!(analysed[key], factored[key], "{key}");
+    }
+    assert_eq!(analysed["ordering"], "nested_dissection");
+    assert!(analysed.get("factor_s").is_none(), "the analysis does not factor");
+    let bytes = analysed["matrix_and_factor_bytes"].as_u64().unwrap();
+    assert!(bytes >= 8 * analysed["nnz_l"].as_u64().unwrap());
+    // The flag belongs to the direct profile of a scene only.
+    let out = nsdd(&["bench", "iteration", "--analyse"]);
+    assert!(!out.status.success());
+    assert!(text(&out.stderr).contains("--analyse"), "{}", text(&out.stderr));
+}
