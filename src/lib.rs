@@ -13,6 +13,7 @@ pub mod coarse;
 pub mod comm;
 pub mod dd;
 pub mod decomposition;
+pub(crate) mod dense;
 pub mod direct;
 pub mod error;
 pub mod factor;

@@ -324,38 +324,14 @@ fn deluxe_solve(sum: &Mat<f64>, rhs: MatRef<'_, f64>, share: f64) -> Option<Vec<
 /// of the largest).
 fn by_cholesky(sum: &Mat<f64>, rhs: MatRef<'_, f64>) -> Option<Vec<f64>> {
     use faer::linalg::solvers::Solve;
-    let n = sum.nrows();
-    let llt = sum.llt(faer::Side::Lower).ok()?;
-    let l = llt.L();
-    let pivots = (0..n).map(|k| l[(k, k)] * l[(k, k)]);
-    let (lo, hi) = pivots.fold((f64::INFINITY, 0.0f64), |(a, b), p| (a.min(p), b.max(p)));
-    if !(lo > DELUXE_CHOLESKY_PIVOT_RATIO * hi) {
-        return None;
-    }
-    // Pivots bound the smallest eigenvalue only from above; inverse
-    // iteration (2n² flops a step) estimates it, so that a sum with
-    // directions the eigendecomposition would split evenly (below
-    // DELUXE_PINV_RTOL) goes that way instead of being inverted.
-    let trace: f64 = (0..n).map(|k| sum[(k, k)]).sum();
-    let mut seed = 0x9e37_79b9_7f4a_7c15u64;
-    let mut x = Mat::<f64>::from_fn(n, 1, |_, _| {
-        seed = seed
-            .wrapping_mul(6_364_136_223_846_793_005)
-            .wrapping_add(1_442_695_040_888_963_407);
-        (seed >> 11) as f64 / (1u64 << 53) as f64 - 0.5
-    });
-    for _ in 0..DELUXE_INVERSE_ITERATIONS {
-        let norm = x.norm_l2();
-        if !(norm > 0.0) || !norm.is_finite() {
-            return None;
-        }
-        x = llt.solve(&x * faer::Scale(1.0 / norm));
-    }
-    let x = &x * faer::Scale(1.0 / x.norm_l2());
-    let rayleigh = (x.transpose() * sum * &x)[(0, 0)];
-    if !(rayleigh > DELUXE_CHOLESKY_EIGEN_RATIO * trace) {
-        return None;
-    }
+    // A sum with directions the eigendecomposition would split evenly
+    // (below DELUXE_PINV_RTOL) goes that way instead of being inverted.
+    let llt = crate::dense::clearly_positive_definite(
+        sum,
+        DELUXE_CHOLESKY_PIVOT_RATIO,
+        DELUXE_CHOLESKY_EIGEN_RATIO,
+        DELUXE_INVERSE_ITERATIONS,
+    )?;
     finite_column_major(&llt.solve(rhs))
 }
 
