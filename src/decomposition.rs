@@ -41,6 +41,19 @@ pub struct SubdomainDofs {
 }
 
 impl SubdomainDofs {
+    /// Whether the subdomain can translate along some axis without
+    /// straining any of its elements: no node of it is blocked in that
+    /// component. `K_E` then maps the translation to zero exactly, so the
+    /// subdomain is singular (floating) whatever its stiffness.
+    pub fn translates_freely(&self, model: &Model) -> bool {
+        (0..3).any(|c| {
+            self.elements.iter().all(|&e| {
+                let el = &model.elements[e];
+                model.node_dofs[el.a][c] != FIXED && model.node_dofs[el.b][c] != FIXED
+            })
+        })
+    }
+
     /// Local index of global free dof `dof` (binary search).
     pub fn local(&self, dof: usize) -> Option<usize> {
         self.by_global

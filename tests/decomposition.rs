@@ -794,3 +794,45 @@ fn subdomain_factorization_does_not_depend_on_the_layout() {
     }
     assert!(singular > 0, "the case should include floating subdomains");
 }
+
+/// A subdomain free to translate is floating: its operator (which skips
+/// the factorization attempt that could only fail) finds the six rigid
+/// modes, the same fixing dofs as the generic path that tries first, and
+/// a subdomain touching the supports is neither.
+#[test]
+fn subdomains_free_to_translate_are_floating() {
+    use nsdd::generate::{tower, TowerParams};
+    use nsdd::subdomain::SubdomainOperator;
+    let scene = tower(&TowerParams {
+        nx: 3,
+        ny: 3,
+        nz: 8,
+        unilateral: false,
+        ea_cable: 1e4,
+        ..Default::default()
+    });
+    let model = Model::from_scene(&scene).unwrap();
+    let dec = Decomposition::new(&model, Partition::bisection(&model, 4).unwrap());
+    let mut floating = 0;
+    for (s, sd) in dec.subdomains.iter().enumerate() {
+        let op = SubdomainOperator::new(s, &model, sd, 4).unwrap();
+        let generic =
+            SubdomainOperator::from_matrix(s, op.stiffness.clone(), 4, None, Some(&sd.reference_rank()), &|l| {
+                format!("dof {l}")
+            })
+            .unwrap();
+        assert_eq!(op.fixing_dofs(), generic.fixing_dofs(), "subdomain {s}");
+        if sd.translates_freely(&model) {
+            assert_eq!(op.kernel_dim(), 6, "subdomain {s} floats");
+            floating += 1;
+        } else {
+            assert_eq!(op.kernel_dim(), 0, "subdomain {s} holds on to the supports");
+        }
+    }
+    // The tower is cut along its height: the lower part holds, the rest floats.
+    assert!(
+        floating >= 2 && floating < dec.len(),
+        "{floating} of {} float",
+        dec.len()
+    );
+}
