@@ -835,10 +835,7 @@ fn bench_direct_scene(a: &BenchArgs) -> Result<i32> {
         return bench_direct_analysis(a, path, &scene);
     }
     let p = nsdd::bench::direct_profile(&scene)?;
-    let json = serde_json::to_string(&p).expect("serializable");
-    if a.json {
-        println!("{json}");
-    } else {
+    emit_profile(a, &serde_json::to_string(&p).expect("serializable"), || {
         let mib = |b: u64| b as f64 / (1024.0 * 1024.0);
         println!("scene      {}", path.display());
         println!("dofs       {}", p.dofs);
@@ -857,6 +854,16 @@ fn bench_direct_scene(a: &BenchArgs) -> Result<i32> {
         );
         println!("K+L        {:.1} MiB", mib(p.matrix_and_factor_bytes));
         println!("peak       {:.1} MiB", p.peak_bytes.map_or(f64::NAN, mib));
+    })
+}
+
+/// Prints a profile of one scene: its JSON with `--json`, else `table`;
+/// the JSON goes to `--out` too.
+fn emit_profile(a: &BenchArgs, json: &str, table: impl FnOnce()) -> Result<i32> {
+    if a.json {
+        println!("{json}");
+    } else {
+        table();
     }
     if let Some(out) = &a.out {
         std::fs::write(out, format!("{json}\n")).map_err(|e| Error::Io(format!("{}: {e}", out.display())))?;
@@ -868,10 +875,7 @@ fn bench_direct_scene(a: &BenchArgs) -> Result<i32> {
 /// would need, from its symbolic analysis.
 fn bench_direct_analysis(a: &BenchArgs, path: &std::path::Path, scene: &Scene) -> Result<i32> {
     let p = nsdd::bench::direct_analysis(scene)?;
-    let json = serde_json::to_string(&p).expect("serializable");
-    if a.json {
-        println!("{json}");
-    } else {
+    emit_profile(a, &serde_json::to_string(&p).expect("serializable"), || {
         let gib = |b: u64| b as f64 / (1024.0 * 1024.0 * 1024.0);
         println!("scene      {}", path.display());
         println!("dofs       {}", p.dofs);
@@ -891,11 +895,7 @@ fn bench_direct_analysis(a: &BenchArgs, path: &std::path::Path, scene: &Scene) -
             "peak       {:.2} GiB (this analysis)",
             p.peak_bytes.map_or(f64::NAN, gib)
         );
-    }
-    if let Some(out) = &a.out {
-        std::fs::write(out, format!("{json}\n")).map_err(|e| Error::Io(format!("{}: {e}", out.display())))?;
-    }
-    Ok(0)
+    })
 }
 
 fn cmd_bench(a: BenchArgs) -> Result<i32> {

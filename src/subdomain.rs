@@ -100,7 +100,7 @@ impl SubdomainOperator {
         // A subdomain free to translate is singular for certain: its first
         // factorization would only fail, after most of the work (a floating
         // subdomain's round-off pivots come last), so it goes straight to
-        // the pivot scan (t30³ tower: 7-10 % of the factor phase).
+        // the pivot scan (30³ tower: 7-10 % of the factor phase, one thread).
         Self::from_matrix_known(
             id,
             stiffness,
