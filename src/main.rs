@@ -392,6 +392,18 @@ fn is_root() -> bool {
 }
 
 fn main() -> ExitCode {
+    // A reader that goes away early (`nsdd gen ... | head`) ends the
+    // process quietly, as it does other command-line tools, instead of a
+    // panic on the failed write. Not under an MPI launcher, whose
+    // transports may count on SIGPIPE being ignored.
+    #[cfg(unix)]
+    if !launched_by_mpi() {
+        // SAFETY: restores one signal's default disposition at start-up,
+        // before any other thread exists.
+        unsafe {
+            libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+        }
+    }
     let cli = Cli::parse();
     // faer's dense kernels (the coarse operator's products, the macro
     // bases' and deluxe faces' eigensolves) split their work by the number

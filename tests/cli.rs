@@ -982,3 +982,26 @@ fn direct_analysis_predicts_the_factor_without_factoring() {
     assert!(!out.status.success());
     assert!(text(&out.stderr).contains("--analyse"), "{}", text(&out.stderr));
 }
+
+/// Output piped into a reader that stops early (`nsdd gen ... | head`)
+/// ends the process by SIGPIPE, as it does other command-line tools, not
+/// with a panic on the failed write.
+#[cfg(unix)]
+#[test]
+fn a_closed_pipe_ends_quietly() {
+    use std::io::Read;
+    use std::os::unix::process::ExitStatusExt;
+    use std::process::Stdio;
+    let mut child = Command::new(env!("CARGO_BIN_EXE_nsdd"))
+        .args(["gen", "grid", "nx=80", "ny=80"])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("run nsdd");
+    let mut head = [0u8; 64];
+    child.stdout.take().unwrap().read_exact(&mut head).unwrap();
+    // The read end is dropped here, the scene (megabytes) not yet written.
+    let out = child.wait_with_output().unwrap();
+    assert_eq!(out.status.signal(), Some(libc::SIGPIPE), "{:?}", out.status);
+    assert!(!text(&out.stderr).contains("panicked"), "{}", text(&out.stderr));
+}
