@@ -43,6 +43,12 @@ pub struct DirectProfile {
     pub factor_threads: usize,
 }
 
+/// Bytes of `K` (lower CSC: values and row indices, column pointers) plus
+/// the values of `L`, for `n` dofs.
+fn matrix_and_factor_bytes(n: usize, nnz_k: usize, nnz_l: usize) -> u64 {
+    (nnz_k * 16 + (n + 1) * 8 + nnz_l * 8) as u64
+}
+
 /// Factors and solves `scene` with the direct solver, timing each phase.
 pub fn direct_profile(scene: &Scene) -> Result<DirectProfile> {
     let model = Model::from_scene(scene)?;
@@ -52,7 +58,7 @@ pub fn direct_profile(scene: &Scene) -> Result<DirectProfile> {
     let eq = solver.solve(&model, &b)?;
     let solve_s = t.elapsed().as_secs_f64();
     let st = solver.stats().clone();
-    let bytes = (st.nnz_k * 16 + (st.n + 1) * 8 + st.nnz_l * 8) as u64;
+    let bytes = matrix_and_factor_bytes(st.n, st.nnz_k, st.nnz_l);
     Ok(DirectProfile {
         dofs: st.n,
         nnz_k: st.nnz_k,
@@ -111,7 +117,7 @@ pub fn direct_analysis(scene: &Scene) -> Result<DirectAnalysis> {
         ordering: kind.name().to_string(),
         assembly_s,
         analysis_s,
-        matrix_and_factor_bytes: (nnz_k * 16 + (model.n_free + 1) * 8 + nnz_l * 8) as u64,
+        matrix_and_factor_bytes: matrix_and_factor_bytes(model.n_free, nnz_k, nnz_l),
         peak_bytes: peak_memory_bytes(),
     })
 }
