@@ -36,7 +36,8 @@
 //! with `geometric_stiffness` on).
 //!
 //! `NSDD_NS_DEBUG=1` prints one line per outer step (set size, inner
-//! tolerance and iterations, set-up and CG time, coarse sizes) to stderr.
+//! tolerance and iterations, set-up and CG time, coarse sizes) to stderr,
+//! and why an exact set-up gave way to a softened one.
 //!
 //! Not done yet: reusing the coarse contributions and the orderings of
 //! unchanged subdomains, and low-rank updates instead of refactoring.
@@ -654,6 +655,9 @@ impl NonsmoothCg {
                 // the softened step is for. If the softened set-up fails
                 // too, that error is the structure's own.
                 Err(e @ (Error::Mechanism(_) | Error::IndefiniteSubdomain { .. })) => {
+                    if std::env::var_os("NSDD_NS_DEBUG").is_some() {
+                        eprintln!("outer {outer}: the exact set-up failed ({e}); taking the softened step");
+                    }
                     mechanism = Some(format!("{} ({e})", mechanism_message(model, &slack)));
                     match self.ensure_solver(model, &slack, true) {
                         Ok(new) => setups += new as usize,
