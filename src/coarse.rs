@@ -930,28 +930,21 @@ fn sparse_clearly_positive_definite(na: usize, rows: &[Vec<(usize, f64)>]) -> bo
         return false;
     };
     let trace: f64 = lower_diagonal(&lower).iter().sum();
-    let mut seed = 0x9e37_79b9_7f4a_7c15u64;
-    let mut x: Vec<f64> = (0..na)
-        .map(|_| {
-            seed = seed
-                .wrapping_mul(6_364_136_223_846_793_005)
-                .wrapping_add(1_442_695_040_888_963_407);
-            (seed >> 11) as f64 / (1u64 << 53) as f64 - 0.5
-        })
-        .collect();
+    let mut x = crate::dense::inverse_iteration_start(na);
     let norm = |x: &[f64]| x.iter().map(|v| v * v).sum::<f64>().sqrt();
-    // Solve after normalising, as the dense test; the last pass only
-    // normalises.
-    for step in 0..=RANK_INVERSE_ITERATIONS {
+    for _ in 0..RANK_INVERSE_ITERATIONS {
         let n = norm(&x);
         if !(n > 0.0) || !n.is_finite() {
             return false;
         }
         x.iter_mut().for_each(|v| *v /= n);
-        if step < RANK_INVERSE_ITERATIONS {
-            chol.solve_in_place(&mut x);
-        }
+        chol.solve_in_place(&mut x);
     }
+    let n = norm(&x);
+    if !(n > 0.0) || !n.is_finite() {
+        return false;
+    }
+    x.iter_mut().for_each(|v| *v /= n);
     let mut ax = vec![0.0; na];
     sym_matvec(&lower, &x, &mut ax);
     let rayleigh: f64 = x.iter().zip(&ax).map(|(a, b)| a * b).sum();

@@ -32,13 +32,8 @@ pub(crate) fn clearly_positive_definite(
         return None;
     }
     let trace: f64 = (0..n).map(|k| a[(k, k)]).sum();
-    let mut seed = 0x9e37_79b9_7f4a_7c15u64;
-    let mut x = Mat::<f64>::from_fn(n, 1, |_, _| {
-        seed = seed
-            .wrapping_mul(6_364_136_223_846_793_005)
-            .wrapping_add(1_442_695_040_888_963_407);
-        (seed >> 11) as f64 / (1u64 << 53) as f64 - 0.5
-    });
+    let start = inverse_iteration_start(n);
+    let mut x = Mat::<f64>::from_fn(n, 1, |i, _| start[i]);
     for _ in 0..steps {
         let norm = x.norm_l2();
         if !(norm > 0.0) || !norm.is_finite() {
@@ -49,6 +44,21 @@ pub(crate) fn clearly_positive_definite(
     let x = &x * faer::Scale(1.0 / x.norm_l2());
     let rayleigh = (x.transpose() * a * &x)[(0, 0)];
     (rayleigh > eigen_ratio * trace).then_some(llt)
+}
+
+/// The fixed pseudo-random start of the inverse iterations that vouch for
+/// a positive definite matrix (here and in the coarse rank check): the
+/// same matrix always takes the same path.
+pub(crate) fn inverse_iteration_start(n: usize) -> Vec<f64> {
+    let mut seed = 0x9e37_79b9_7f4a_7c15u64;
+    (0..n)
+        .map(|_| {
+            seed = seed
+                .wrapping_mul(6_364_136_223_846_793_005)
+                .wrapping_add(1_442_695_040_888_963_407);
+            (seed >> 11) as f64 / (1u64 << 53) as f64 - 0.5
+        })
+        .collect()
 }
 
 #[cfg(test)]
