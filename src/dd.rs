@@ -351,6 +351,10 @@ pub struct DdStats {
     /// steps; see `NonsmoothOutcome::reused`).
     pub interiors_reused: usize,
     pub face_blocks_reused: usize,
+    /// Deluxe blocks (a face's, or one edge's) computed from the interior
+    /// near them only (the default `economic_deluxe` scaling, on large
+    /// faces); the others are exact.
+    pub near_blocks: usize,
     /// Macro basis, batched solves for `L` and `G`, coarse factorization.
     pub coarse_s: f64,
     /// The adaptive macro columns: interior factors, face blocks and face
@@ -904,6 +908,7 @@ impl DdSolver {
             interior_s: 0.0,
             interiors_reused: 0,
             face_blocks_reused: 0,
+            near_blocks: 0,
             coarse_s: if use_coarse {
                 t_coarse.elapsed().as_secs_f64() - adaptive_s
             } else {

@@ -107,7 +107,7 @@ impl std::fmt::Debug for SparseCholesky {
     }
 }
 
-fn pattern_of(lower: &SparseColMat<usize, f64>) -> (Vec<usize>, Vec<usize>) {
+pub(crate) fn pattern_of(lower: &SparseColMat<usize, f64>) -> (Vec<usize>, Vec<usize>) {
     let a = lower.symbolic();
     let n = a.ncols();
     let mut col_ptr = Vec::with_capacity(n + 1);

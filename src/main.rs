@@ -173,7 +173,7 @@ struct SolveArgs {
     /// Preconditioner of cg: dirichlet (default: interior solves, fewer iterations) or lumped
     #[arg(long, value_name = "P", value_parser = parse_preconditioner)]
     preconditioner: Option<Preconditioner>,
-    /// Weights of cg's preconditioner across interfaces: deluxe (default), contrast, multiplicity, stiffness or none
+    /// Weights of cg's preconditioner across interfaces: economic_deluxe (default: deluxe, the blocks of large faces from the interior near them), deluxe (every block exact), contrast, multiplicity, stiffness or none
     #[arg(long, value_name = "S", value_parser = parse_interface_scaling)]
     interface_scaling: Option<InterfaceScaling>,
     /// Adaptive macro space of cg: eigenvalue threshold above which a face's jump modes become macro columns (0: none, the default; try 5 where stiff bars hang on soft cables)

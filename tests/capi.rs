@@ -894,6 +894,7 @@ fn scene_level_cg_matches_rust_api_bit_for_bit() {
             (InterfaceScaling::Multiplicity, NsddInterfaceScaling::Multiplicity),
             (InterfaceScaling::Stiffness, NsddInterfaceScaling::Stiffness),
             (InterfaceScaling::None, NsddInterfaceScaling::None),
+            (InterfaceScaling::EconomicDeluxe, NsddInterfaceScaling::EconomicDeluxe),
         ] {
             opts.interface_scaling = k;
             let want = solve(&big, &opts).unwrap();
@@ -904,14 +905,14 @@ fn scene_level_cg_matches_rust_api_bit_for_bit() {
             nsdd_result_destroy(r);
         }
         expect_err(
-            nsdd_options_set_interface_scaling(o, 5),
+            nsdd_options_set_interface_scaling(o, 6),
             NsddStatus::InvalidArgument,
             "interface_scaling",
         );
         opts.interface_scaling = InterfaceScaling::default();
         ok(nsdd_options_set_interface_scaling(
             o,
-            NsddInterfaceScaling::Deluxe as u32,
+            NsddInterfaceScaling::EconomicDeluxe as u32,
         ));
         // The adaptive macro space, bit for bit as in Rust, then off again.
         opts.adaptive_threshold = 10.0;

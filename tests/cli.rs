@@ -715,17 +715,19 @@ fn cg_preconditioner_flag() {
         .collect();
     assert_ne!(iterations[0], iterations[1]);
     // --interface-scaling reaches it too: each value matches the direct
-    // solution, deluxe (the default) in fewer iterations than contrast.
-    let its: Vec<u64> = ["deluxe", "contrast", "multiplicity"]
+    // solution, economic deluxe (the default, the exact deluxe weights on
+    // subdomains this small) in fewer iterations than contrast.
+    let its: Vec<u64> = ["economic_deluxe", "deluxe", "contrast", "multiplicity"]
         .iter()
         .map(|k| cg_with("--interface-scaling", k))
         .collect();
-    assert_eq!(its[0], iterations[0], "deluxe is the default");
-    assert!(its[0] < its[1], "deluxe {} vs contrast {}", its[0], its[1]);
+    assert_eq!(its[0], iterations[0], "economic_deluxe is the default");
+    assert_eq!(its[0], its[1], "exact blocks on small subdomains");
+    assert!(its[0] < its[2], "deluxe {} vs contrast {}", its[0], its[2]);
     let out = nsdd(&["solve", s(&scene), "--method", "cg", "--interface-scaling", "rho"]);
     assert_eq!(out.status.code(), Some(2));
     assert!(
-        text(&out.stderr).contains("none, multiplicity, stiffness, contrast or deluxe"),
+        text(&out.stderr).contains("none, multiplicity, stiffness, contrast, deluxe or economic_deluxe"),
         "{}",
         text(&out.stderr)
     );

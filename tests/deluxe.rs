@@ -51,8 +51,15 @@ fn direct(scene: &Scene) -> SolveResult {
 fn deluxe_converges_on_the_contrast_tower() {
     let scene = taut_tower(1.0);
     let d = direct(&scene);
-    assert_eq!(InterfaceScaling::default(), InterfaceScaling::Deluxe);
+    assert_eq!(InterfaceScaling::default(), InterfaceScaling::EconomicDeluxe);
     let r = cg(&scene, 4, InterfaceScaling::default());
+    // Subdomains this small take every block exact: the default is deluxe
+    // to the bit here.
+    let exact = cg(&scene, 4, InterfaceScaling::Deluxe);
+    assert_eq!(
+        (r.iterations, &r.displacements),
+        (exact.iterations, &exact.displacements)
+    );
     assert!(r.converged, "{:?}", r.status);
     assert!(r.iterations <= 100, "deluxe took {} iterations", r.iterations);
     let (eu, et) = errors(&r, &d);
@@ -128,8 +135,14 @@ fn scene_setting_is_validated() {
     assert!(text.contains("interface_scaling = \"contrast\""), "{text}");
     let back = Scene::from_toml_str(&text).unwrap();
     assert_eq!(back.solver.interface_scaling, InterfaceScaling::Contrast);
-    scene.solver.interface_scaling = InterfaceScaling::Deluxe;
+    scene.solver.interface_scaling = InterfaceScaling::EconomicDeluxe;
     assert!(!scene.to_toml_string().unwrap().contains("interface_scaling"));
+    scene.solver.interface_scaling = InterfaceScaling::Deluxe;
+    let exact = scene.to_toml_string().unwrap();
+    assert!(exact.contains("interface_scaling = \"deluxe\""), "{exact}");
+    let economic = exact.replace("\"deluxe\"", "\"economic_deluxe\"");
+    let back = Scene::from_toml_str(&economic).unwrap();
+    assert_eq!(back.solver.interface_scaling, InterfaceScaling::EconomicDeluxe);
     let bad = text.replace("interface_scaling = \"contrast\"", "interface_scaling = \"rho\"");
     let err = Scene::from_toml_str(&bad).unwrap_err().to_string();
     assert!(err.contains("interface_scaling") && err.contains("deluxe"), "{err}");
@@ -201,4 +214,48 @@ fn deluxe_edges_of_a_3d_partition() {
         r.iterations,
         c.iterations
     );
+}
+
+/// The economic deluxe blocks (the default) on a 3D tower whose faces are
+/// large enough to take them (16³ cells, 4 subdomains): every face and edge
+/// block from the interior near it, the same iteration count as the exact
+/// blocks give (2 more at most), and both agree with the direct solve.
+#[test]
+fn economic_deluxe_on_large_3d_faces() {
+    let scene = nsdd::generate::tower(&nsdd::generate::TowerParams {
+        nx: 16,
+        ny: 16,
+        nz: 16,
+        ea_cable: 1e4,
+        unilateral: false,
+        ..Default::default()
+    });
+    let model = nsdd::model::Model::from_scene(&scene).unwrap();
+    let dec = nsdd::solve::decompose(&model, &scene, 4).unwrap();
+    let near_blocks = |scaling| {
+        let settings = SolveOptions {
+            method: Method::Cg,
+            interface_scaling: scaling,
+            ..Default::default()
+        };
+        let opts = nsdd::dd::DdOptions::from_settings(&settings).unwrap();
+        nsdd::dd::DdSolver::new(&model, &dec, opts).unwrap().stats().near_blocks
+    };
+    assert!(near_blocks(InterfaceScaling::EconomicDeluxe) > 0);
+    assert_eq!(near_blocks(InterfaceScaling::Deluxe), 0);
+    let d = direct(&scene);
+    let e = cg(&scene, 4, InterfaceScaling::EconomicDeluxe);
+    let x = cg(&scene, 4, InterfaceScaling::Deluxe);
+    for (name, r) in [("economic", &e), ("exact", &x)] {
+        assert!(r.converged, "{name}: {:?}", r.status);
+        let (eu, et) = errors(r, &d);
+        assert!(eu < 1e-8 && et < 1e-7, "{name}: errors {eu:.2e} {et:.2e}");
+    }
+    assert!(
+        e.iterations <= x.iterations + 2,
+        "economic {} vs exact {}",
+        e.iterations,
+        x.iterations
+    );
+    assert_ne!(e.displacements, x.displacements, "other weights, other round-off");
 }

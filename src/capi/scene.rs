@@ -424,8 +424,9 @@ pub unsafe extern "C" fn nsdd_options_set_preconditioner(options: *mut NsddOptio
 
 /// Sets the interface scaling of the `cg` preconditioner, overriding the
 /// scene's `[solver] interface_scaling`: one of `NsddInterfaceScaling` (0
-/// deluxe, 1 contrast, 2 multiplicity, 3 stiffness, 4 none); any other
-/// value is INVALID_ARGUMENT. Ignored by the other methods.
+/// deluxe, 1 contrast, 2 multiplicity, 3 stiffness, 4 none, 5 economic
+/// deluxe, the default); any other value is INVALID_ARGUMENT. Ignored by
+/// the other methods.
 ///
 /// # Safety
 /// `options` must be a live options handle.
@@ -439,9 +440,10 @@ pub unsafe extern "C" fn nsdd_options_set_interface_scaling(options: *mut NsddOp
             2 => InterfaceScaling::Multiplicity,
             3 => InterfaceScaling::Stiffness,
             4 => InterfaceScaling::None,
+            5 => InterfaceScaling::EconomicDeluxe,
             _ => {
                 return Err(invalid(format!(
-                    "interface_scaling = {scaling}: expected 0 (deluxe), 1 (contrast), 2 (multiplicity), 3 (stiffness) or 4 (none)"
+                    "interface_scaling = {scaling}: expected 0 (deluxe), 1 (contrast), 2 (multiplicity), 3 (stiffness), 4 (none) or 5 (economic deluxe)"
                 )))
             }
         };

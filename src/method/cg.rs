@@ -51,7 +51,7 @@ pub(crate) struct CgWorkspace {
     /// `B_D` ([`crate::scaling`], set by [`DdSolver::set_interface_scaling`]).
     pub(crate) w: Vec<EntryWeights>,
     /// Per interface: the deluxe weights of its face (empty face unless the
-    /// scaling is [`InterfaceScaling::Deluxe`]); they replace `w` there.
+    /// scaling is deluxe, exact or economic); they replace `w` there.
     pub(crate) deluxe: Vec<Vec<DeluxeBlock>>,
     /// Per interface: `B_D,loᵀ r` and `B_D,hiᵀ r` (entry order), the
     /// preconditioner's scaled residual on either side.
@@ -390,7 +390,10 @@ impl DdSolver {
         let held = self.op.comm.owned();
         let first = held.start;
         let diag: Vec<Vec<f64>> = match kind {
-            InterfaceScaling::Stiffness | InterfaceScaling::Contrast | InterfaceScaling::Deluxe => {
+            InterfaceScaling::Stiffness
+            | InterfaceScaling::Contrast
+            | InterfaceScaling::Deluxe
+            | InterfaceScaling::EconomicDeluxe => {
                 let own: Vec<Vec<f64>> = self.op.subs.iter().map(|s| s.op.diagonal()).collect();
                 if held.len() == self.dof_maps.len() {
                     own
@@ -435,11 +438,12 @@ impl DdSolver {
             .map(|it| {
                 let m = &mult[it.lo];
                 (0..it.lo_idx.len() as u32)
-                    .filter(|&j| kind == InterfaceScaling::Deluxe && m[it.lo_idx[j as usize] as usize] == 2)
+                    .filter(|&j| kind.is_deluxe() && m[it.lo_idx[j as usize] as usize] == 2)
                     .collect()
             })
             .collect();
-        if kind != InterfaceScaling::Deluxe {
+        self.stats.near_blocks = 0;
+        if !kind.is_deluxe() {
             ws.deluxe.iter_mut().for_each(Vec::clear);
             return;
         }
@@ -447,17 +451,18 @@ impl DdSolver {
         let edges = scaling::Edges::new(&entries, &self.dof_maps, mult);
         drop(entries);
         // Per held subdomain: the rows of its edges' dofs, edge after edge.
-        let edge_rows: Vec<Vec<u32>> = held
+        let edge_rows: Vec<(Vec<u32>, Vec<usize>)> = held
             .clone()
             .map(|s| {
-                edges.of_subdomain[s]
-                    .iter()
-                    .flat_map(|&e| {
-                        let edge = &edges.edges[e];
-                        let m = edge.subdomains.binary_search(&s).expect("an edge lists its subdomains");
-                        edge.rows[m].iter().copied()
-                    })
-                    .collect()
+                let mut rows = Vec::new();
+                let mut lens = Vec::new();
+                for &e in &edges.of_subdomain[s] {
+                    let edge = &edges.edges[e];
+                    let m = edge.subdomains.binary_search(&s).expect("an edge lists its subdomains");
+                    rows.extend_from_slice(&edge.rows[m]);
+                    lens.push(edge.rows[m].len());
+                }
+                (rows, lens)
             })
             .collect();
         // Face blocks of each subdomain's Schur complement, one column per
@@ -465,6 +470,7 @@ impl DdSolver {
         // its edge dofs, whose diagonal blocks are the edges'.
         let ifaces = &self.op.ifaces;
         let taken_over = std::sync::atomic::AtomicUsize::new(0);
+        let near = std::sync::atomic::AtomicUsize::new(0);
         // Each block's rows (local, empty for the lumped blocks) and block.
         let blocks: Vec<(Vec<FaceBlock>, FaceBlock)> = self
             .op
@@ -476,7 +482,11 @@ impl DdSolver {
                 let (mut x, mut y) = (vec![0.0; n], vec![0.0; n]);
                 // Kept blocks of faces this set-up no longer has are dropped.
                 let mut earlier = s.face_blocks.as_mut().map(std::mem::take).unwrap_or_default();
-                let mut block_of = |rows: Vec<u32>| -> FaceBlock {
+                let economic = kind == InterfaceScaling::EconomicDeluxe;
+                // `parts`: the lengths of the pieces of `rows` whose blocks
+                // are wanted (the edges of the edge block); the blocks
+                // between pieces are not used.
+                let mut block_of = |rows: Vec<u32>, parts: &[usize]| -> FaceBlock {
                     if rows.is_empty() {
                         return (rows, Mat::zeros(0, 0));
                     }
@@ -502,6 +512,9 @@ impl DdSolver {
                         }
                         // A failure (out of memory) leaves these dofs
                         // without deluxe weights.
+                        None if economic => {
+                            near_blocks(ip, &s.op, &rows, parts, &near).unwrap_or_else(|_| Mat::zeros(0, 0))
+                        }
                         None => ip.schur_block(&s.op, &rows).unwrap_or_else(|_| Mat::zeros(0, 0)),
                     };
                     (rows, b)
@@ -512,10 +525,12 @@ impl DdSolver {
                     .map(|&(i, is_lo)| {
                         let it = &ifaces[i];
                         let idx = if is_lo { &it.lo_idx } else { &it.hi_idx };
-                        block_of(faces[i].iter().map(|&f| idx[f as usize]).collect())
+                        let rows: Vec<u32> = faces[i].iter().map(|&f| idx[f as usize]).collect();
+                        let len = rows.len();
+                        block_of(rows, &[len])
                     })
                     .collect();
-                let edge_block = block_of(erows);
+                let edge_block = block_of(erows.0, &erows.1);
                 if let Some(ip) = s.interior.as_mut() {
                     ip.release_face_scratch();
                 }
@@ -523,6 +538,7 @@ impl DdSolver {
             })
             .collect();
         self.stats.face_blocks_reused = taken_over.into_inner();
+        self.stats.near_blocks = near.into_inner();
         let mut side: Vec<[Option<&Mat<f64>>; 2]> = vec![[None, None]; self.op.ifaces.len()];
         for (s, (b, _)) in self.op.subs.iter().zip(&blocks) {
             for (&(i, is_lo), (_, m)) in s.ifaces.iter().zip(b) {
@@ -691,4 +707,51 @@ fn exchange_deluxe_blocks(
         faces_in.push(two);
     }
     faces_in
+}
+
+/// The block of `rows` (local) of a subdomain's Schur complement, for the
+/// pieces of `rows` (`parts`: their lengths; the blocks between pieces are
+/// not used): each piece's by [`InteriorProblem::schur_block_near`] where
+/// that pays (counted in `near`), the other pieces' together by one exact
+/// [`InteriorProblem::schur_block`], as the exact deluxe weights do, so
+/// that where no piece pays the block is theirs to the bit.
+///
+/// [`InteriorProblem::schur_block_near`]: crate::subdomain::InteriorProblem::schur_block_near
+/// [`InteriorProblem::schur_block`]: crate::subdomain::InteriorProblem::schur_block
+fn near_blocks(
+    ip: &mut crate::subdomain::InteriorProblem,
+    op: &crate::subdomain::SubdomainOperator,
+    rows: &[u32],
+    parts: &[usize],
+    near: &std::sync::atomic::AtomicUsize,
+) -> Result<Mat<f64>> {
+    let mut b = Mat::<f64>::zeros(rows.len(), rows.len());
+    // The pieces left to the exact block: (offset in `rows`, length).
+    let mut exact = Vec::new();
+    let mut at = 0;
+    for &len in parts {
+        match ip.schur_block_near(op, &rows[at..at + len])? {
+            Some(block) => {
+                near.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                b.submatrix_mut(at, at, len, len).copy_from(&block);
+            }
+            None => exact.push((at, len)),
+        }
+        at += len;
+    }
+    if exact.len() == parts.len() {
+        return ip.schur_block(op, rows);
+    }
+    let exact_rows: Vec<u32> = exact
+        .iter()
+        .flat_map(|&(at, len)| rows[at..at + len].iter().copied())
+        .collect();
+    let e = ip.schur_block(op, &exact_rows)?;
+    let mut from = 0;
+    for (at, len) in exact {
+        b.submatrix_mut(at, at, len, len)
+            .copy_from(e.submatrix(from, from, len, len));
+        from += len;
+    }
+    Ok(b)
 }
