@@ -835,37 +835,7 @@ impl InteriorProblem {
         if nf == 0 {
             return Ok(Mat::zeros(0, 0));
         }
-        let mut fpos = vec![u32::MAX; n];
-        for (k, &l) in rows.iter().enumerate() {
-            fpos[l as usize] = k as u32;
-        }
-        let mut ipos = vec![u32::MAX; n];
-        for (k, &l) in self.interior.iter().enumerate() {
-            ipos[l as usize] = k as u32;
-        }
-        let mut s = Mat::<f64>::zeros(nf, nf);
-        // K_IF by columns: (interior row, value).
-        let mut kif: Vec<Vec<(u32, f64)>> = vec![Vec::new(); nf];
-        let a = op.stiffness.as_ref();
-        let mut add = |r: usize, c: usize, v: f64| {
-            let fc = fpos[c];
-            if fc == u32::MAX {
-                return;
-            }
-            if fpos[r] != u32::MAX {
-                s[(fpos[r] as usize, fc as usize)] += v;
-            } else if ipos[r] != u32::MAX {
-                kif[fc as usize].push((ipos[r], v));
-            }
-        };
-        for j in 0..n {
-            for (i, &v) in a.row_idx_of_col(j).zip(a.val_of_col(j)) {
-                add(i, j, v);
-                if i != j {
-                    add(j, i, v);
-                }
-            }
-        }
+        let (mut s, kif) = face_couplings(&op.stiffness, rows, &positions(n, &self.interior));
         let Some(chol) = self.chol.as_mut() else {
             return Ok(s);
         };
@@ -957,34 +927,12 @@ impl InteriorProblem {
         }
         near.sort_unstable();
         self.graph = Some(graph);
-        let mut fpos = vec![u32::MAX; n];
-        for (k, &l) in rows.iter().enumerate() {
-            fpos[l as usize] = k as u32;
-        }
-        let mut npos = vec![u32::MAX; n];
-        for (k, &l) in near.iter().enumerate() {
-            npos[l as usize] = k as u32;
-        }
-        let mut s = Mat::<f64>::zeros(nf, nf);
-        let mut kif: Vec<Vec<(u32, f64)>> = vec![Vec::new(); nf];
-        let mut add = |r: usize, c: usize, v: f64| {
-            let fc = fpos[c];
-            if fc == u32::MAX {
-                return;
-            }
-            if fpos[r] != u32::MAX {
-                s[(fpos[r] as usize, fc as usize)] += v;
-            } else if npos[r] != u32::MAX {
-                kif[fc as usize].push((npos[r], v));
-            }
-        };
+        let npos = positions(n, &near);
+        let (mut s, kif) = face_couplings(&op.stiffness, rows, &npos);
+        // K_NN, lower triangle.
         let mut knn = Vec::new();
         for j in 0..n {
             for (i, &v) in a.row_idx_of_col(j).zip(a.val_of_col(j)) {
-                add(i, j, v);
-                if i != j {
-                    add(j, i, v);
-                }
                 if npos[i] != u32::MAX && npos[j] != u32::MAX {
                     let (r, c) = (npos[i] as usize, npos[j] as usize);
                     knn.push((r.max(c), r.min(c), v));
@@ -1066,6 +1014,46 @@ pub const NEAR_WIDTH_DIVISOR: usize = 8;
 /// weights are the exact deluxe ones, bit for bit; above it the 3D towers
 /// measured kept their iteration counts (BENCHMARKS.md).
 pub const NEAR_MIN_WORK: usize = 100_000_000;
+
+/// The position of each local dof in `list` (`u32::MAX` off it).
+fn positions(n: usize, list: &[u32]) -> Vec<u32> {
+    let mut pos = vec![u32::MAX; n];
+    for (k, &l) in list.iter().enumerate() {
+        pos[l as usize] = k as u32;
+    }
+    pos
+}
+
+/// `K_FF` for the face dofs `rows` (local) and the columns of `K_IF` as
+/// (inner row, value) for the inner dofs positioned by `inner` (see
+/// [`positions`]), read off the stored lower triangle in one pass.
+fn face_couplings(lower: &SparseColMat<usize, f64>, rows: &[u32], inner: &[u32]) -> (Mat<f64>, Vec<Vec<(u32, f64)>>) {
+    let nf = rows.len();
+    let fpos = positions(lower.ncols(), rows);
+    let mut s = Mat::<f64>::zeros(nf, nf);
+    let mut kif: Vec<Vec<(u32, f64)>> = vec![Vec::new(); nf];
+    let mut add = |r: usize, c: usize, v: f64| {
+        let fc = fpos[c];
+        if fc == u32::MAX {
+            return;
+        }
+        if fpos[r] != u32::MAX {
+            s[(fpos[r] as usize, fc as usize)] += v;
+        } else if inner[r] != u32::MAX {
+            kif[fc as usize].push((inner[r], v));
+        }
+    };
+    let a = lower.as_ref();
+    for j in 0..lower.ncols() {
+        for (i, &v) in a.row_idx_of_col(j).zip(a.val_of_col(j)) {
+            add(i, j, v);
+            if i != j {
+                add(j, i, v);
+            }
+        }
+    }
+    (s, kif)
+}
 
 /// `S −= K_FI K_II⁻¹ K_IF` for the factor `chol` of `K_II` (`ni` rows) and
 /// the columns `kif` of `K_IF`: see [`InteriorProblem::schur_block`].
@@ -1233,6 +1221,23 @@ pub fn orthonormal_columns(a: &Mat<f64>, rtol: f64) -> Mat<f64> {
 mod tests {
     use super::*;
 
+    /// The operator of an `m × m × depth` lattice (`lattice_triplets`) and
+    /// its stiffness as a dense matrix.
+    fn lattice_operator(m: usize, depth: usize) -> (SubdomainOperator, Mat<f64>) {
+        let n = m * m * depth;
+        let trip = crate::factor::lattice_triplets(m, depth);
+        let lower = lower_csc(n, &trip).unwrap();
+        let mut dense = Mat::<f64>::zeros(n, n);
+        for &(r, c, v) in &trip {
+            dense[(r, c)] += v;
+            if r != c {
+                dense[(c, r)] += v;
+            }
+        }
+        let op = SubdomainOperator::from_matrix(0, lower, 1, None, None, &|l| format!("dof {l}")).unwrap();
+        (op, dense)
+    }
+
     /// `schur_block` equals the dense `K_FF − K_FI K_II⁻¹ K_IF` by both of
     /// its routes (the product over the reached rows of `W`, and the
     /// backward substitutions), on a 3D lattice whose interior factor is
@@ -1241,16 +1246,7 @@ mod tests {
     fn schur_block_equals_the_dense_schur_complement_by_both_routes() {
         for (m, depth) in [(14, 14), (14, 1)] {
             let n = m * m * depth;
-            let trip = crate::factor::lattice_triplets(m, depth);
-            let lower = lower_csc(n, &trip).unwrap();
-            let mut dense = Mat::<f64>::zeros(n, n);
-            for &(r, c, v) in &trip {
-                dense[(r, c)] += v;
-                if r != c {
-                    dense[(c, r)] += v;
-                }
-            }
-            let op = SubdomainOperator::from_matrix(0, lower, 1, None, None, &|l| format!("dof {l}")).unwrap();
+            let (op, dense) = lattice_operator(m, depth);
             // Interface: the first and last layers (3D), or rows (2D).
             let on_face = |p: usize| if depth > 1 { p < m * m } else { p % m == 0 };
             let on_other = |p: usize| if depth > 1 { p >= n - m * m } else { p % m == m - 1 };
@@ -1289,16 +1285,7 @@ mod tests {
         let m = 14;
         for depth in [14, 4] {
             let n = m * m * depth;
-            let trip = crate::factor::lattice_triplets(m, depth);
-            let lower = lower_csc(n, &trip).unwrap();
-            let mut dense = Mat::<f64>::zeros(n, n);
-            for &(r, c, v) in &trip {
-                dense[(r, c)] += v;
-                if r != c {
-                    dense[(c, r)] += v;
-                }
-            }
-            let op = SubdomainOperator::from_matrix(0, lower, 1, None, None, &|l| format!("dof {l}")).unwrap();
+            let (op, dense) = lattice_operator(m, depth);
             let layer = |p: usize| p / (m * m);
             let face: Vec<u32> = (0..n as u32).filter(|&p| layer(p as usize) == 0).collect();
             let boundary: Vec<u32> = (0..n as u32)
