@@ -929,6 +929,10 @@ impl InteriorProblem {
         self.graph = Some(graph);
         let npos = positions(n, &near);
         let (mut s, kif) = face_couplings(&op.stiffness, rows, &npos);
+        let nn = near.len();
+        if nn == 0 {
+            return Ok(Some(s));
+        }
         // K_NN, lower triangle.
         let mut knn = Vec::new();
         for j in 0..n {
@@ -938,10 +942,6 @@ impl InteriorProblem {
                     knn.push((r.max(c), r.min(c), v));
                 }
             }
-        }
-        let nn = near.len();
-        if nn == 0 {
-            return Ok(Some(s));
         }
         let internal = |e: FactorError| Error::Numerical(format!("subdomain {}: {e:?}", op.id));
         let lower = lower_csc(nn, &knn).map_err(internal)?;
