@@ -68,10 +68,11 @@ pub enum InterfaceScaling {
     /// [`crate::subdomain::NEAR_MIN_WORK`] multiply-adds (large 3D faces)
     /// computed from the interior dofs near them only, the farther ones
     /// held ("economic deluxe",
-    /// [`crate::subdomain::InteriorProblem::schur_block_near`]): same
-    /// weights on small subdomains, a set-up several times cheaper on large
-    /// ones for the same iteration count on the towers measured. The
-    /// default.
+    /// [`crate::subdomain::InteriorProblem::schur_block_near`]): the same
+    /// weights on small subdomains; on the 30³ tower with 4 and 16
+    /// subdomains the blocks 2–4× cheaper and the whole set-up 1.4–2×, for
+    /// the same iteration counts (8 % more on a tower with stiffness
+    /// contrast 1e4, BENCHMARKS.md). The default.
     #[default]
     #[serde(rename = "economic_deluxe")]
     EconomicDeluxe,

@@ -117,7 +117,7 @@ pub enum NsddInterfaceScaling {
     /// Deluxe, with the blocks of large faces (whose exact block would
     /// cost more than about 1e8 multiply-adds) taken from the interior
     /// near the face only (default): the same weights on small
-    /// subdomains, a set-up several times cheaper on large 3D ones.
+    /// subdomains, deluxe blocks 2–4× cheaper on large 3D ones.
     EconomicDeluxe = 5,
 }
 
