@@ -692,30 +692,12 @@ impl InteriorProblem {
     /// increasing) removed.
     pub fn new(op: &SubdomainOperator, boundary: &[u32]) -> Result<InteriorProblem> {
         let n = op.n();
-        let mut local = vec![u32::MAX; n];
-        let mut interior = Vec::with_capacity(n.saturating_sub(boundary.len()));
         let mut is_boundary = vec![false; n];
         for &b in boundary {
             is_boundary[b as usize] = true;
         }
-        for (l, slot) in local.iter_mut().enumerate() {
-            if !is_boundary[l] {
-                *slot = interior.len() as u32;
-                interior.push(l as u32);
-            }
-        }
-        let a = op.stiffness.as_ref();
-        let mut triplets = Vec::new();
-        for j in 0..n {
-            if is_boundary[j] {
-                continue;
-            }
-            for (i, &v) in a.row_idx_of_col(j).zip(a.val_of_col(j)) {
-                if !is_boundary[i] {
-                    triplets.push((local[i] as usize, local[j] as usize, v));
-                }
-            }
-        }
+        let interior: Vec<u32> = (0..n as u32).filter(|&l| !is_boundary[l as usize]).collect();
+        let triplets = principal_lower(&op.stiffness, &positions(n, &interior));
         let ni = interior.len();
         if ni == 0 {
             return Ok(InteriorProblem {
@@ -878,7 +860,6 @@ impl InteriorProblem {
         if nf == 0 || nf.saturating_mul(chol.nnz_l()) <= min_work {
             return Ok(None);
         }
-        let a = op.stiffness.as_ref();
         let graph = match self.graph.take() {
             Some(g) => g,
             None => SymmetricGraph::new(&op.stiffness, &self.interior),
@@ -933,16 +914,7 @@ impl InteriorProblem {
         if nn == 0 {
             return Ok(Some(s));
         }
-        // K_NN, lower triangle.
-        let mut knn = Vec::new();
-        for j in 0..n {
-            for (i, &v) in a.row_idx_of_col(j).zip(a.val_of_col(j)) {
-                if npos[i] != u32::MAX && npos[j] != u32::MAX {
-                    let (r, c) = (npos[i] as usize, npos[j] as usize);
-                    knn.push((r.max(c), r.min(c), v));
-                }
-            }
-        }
+        let knn = principal_lower(&op.stiffness, &npos);
         let internal = |e: FactorError| Error::Numerical(format!("subdomain {}: {e:?}", op.id));
         let lower = lower_csc(nn, &knn).map_err(internal)?;
         let order = EliminationOrder::for_set_up(&lower, None, OrderingChoice::Auto).map_err(internal)?;
@@ -1022,6 +994,25 @@ fn positions(n: usize, list: &[u32]) -> Vec<u32> {
         pos[l as usize] = k as u32;
     }
     pos
+}
+
+/// The lower triangle of the principal block of `lower` on the dofs
+/// positioned by `pos` (see [`positions`], which keeps their order, so the
+/// block stays lower), as triplets in those positions, column by column.
+fn principal_lower(lower: &SparseColMat<usize, f64>, pos: &[u32]) -> Vec<(usize, usize, f64)> {
+    let a = lower.as_ref();
+    let mut triplets = Vec::new();
+    for j in 0..lower.ncols() {
+        if pos[j] == u32::MAX {
+            continue;
+        }
+        for (i, &v) in a.row_idx_of_col(j).zip(a.val_of_col(j)) {
+            if pos[i] != u32::MAX {
+                triplets.push((pos[i] as usize, pos[j] as usize, v));
+            }
+        }
+    }
+    triplets
 }
 
 /// `K_FF` for the face dofs `rows` (local) and the columns of `K_IF` as

@@ -471,6 +471,7 @@ impl DdSolver {
         let ifaces = &self.op.ifaces;
         let taken_over = std::sync::atomic::AtomicUsize::new(0);
         let near = std::sync::atomic::AtomicUsize::new(0);
+        let economic = kind == InterfaceScaling::EconomicDeluxe;
         // Each block's rows (local, empty for the lumped blocks) and block.
         let blocks: Vec<(Vec<FaceBlock>, FaceBlock)> = self
             .op
@@ -482,7 +483,6 @@ impl DdSolver {
                 let (mut x, mut y) = (vec![0.0; n], vec![0.0; n]);
                 // Kept blocks of faces this set-up no longer has are dropped.
                 let mut earlier = s.face_blocks.as_mut().map(std::mem::take).unwrap_or_default();
-                let economic = kind == InterfaceScaling::EconomicDeluxe;
                 // `parts`: the lengths of the pieces of `rows` whose blocks
                 // are wanted (the edges of the edge block); the blocks
                 // between pieces are not used.
