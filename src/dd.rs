@@ -287,10 +287,31 @@ pub(crate) struct SubState {
     /// kept for a later set-up that takes this subdomain over
     /// ([`DdSolver::new_pooled`]); `None`: not kept.
     pub(crate) face_blocks: Option<Vec<FaceBlock>>,
+    /// What `z` and this subdomain's coarse contribution were computed
+    /// from, kept for a later set-up; `None`: not kept.
+    pub(crate) coarse_kept: Option<CoarseBlocks>,
+}
+
+/// A subdomain's coarse blocks `L_E = W_Eᵀ Z_E`, `G_E = W_Eᵀ R_E` and the
+/// columns `W_E` they came from, on its interface dofs `rows` (`W_E` is zero
+/// elsewhere). A later set-up of the same operator whose `W_E` is equal
+/// takes them, and `Z_E`, over instead of solving again: in the nonsmooth
+/// CG's last steps most subdomains keep their operator, and their
+/// neighbours' kernels, and so their macro columns.
+pub(crate) struct CoarseBlocks {
+    rows: Vec<u32>,
+    w: Mat<f64>,
+    l: Mat<f64>,
+    g: Mat<f64>,
 }
 
 /// A Schur-complement face block `S_E[rows, rows]` and its rows.
 pub(crate) type FaceBlock = (Vec<u32>, Mat<f64>);
+
+/// Per subdomain held: the interior factor and face blocks taken over.
+type PooledBlocks = Vec<(Option<InteriorProblem>, Vec<FaceBlock>)>;
+/// Per subdomain held: `Z_E` and the coarse blocks taken over.
+type PooledCoarse = Vec<Option<(Mat<f64>, CoarseBlocks)>>;
 
 /// What a set-up of a changed structure can take over from an earlier
 /// one for a subdomain whose elements and dof layout did not change
@@ -302,6 +323,8 @@ pub(crate) struct PooledSubdomain {
     pub(crate) op: SubdomainOperator,
     interior: Option<InteriorProblem>,
     face_blocks: Vec<FaceBlock>,
+    /// `Z_E` and the blocks it gave, see [`CoarseBlocks`].
+    coarse: Option<(Mat<f64>, CoarseBlocks)>,
 }
 
 pub(crate) struct IfaceState {
@@ -351,6 +374,10 @@ pub struct DdStats {
     /// steps; see `NonsmoothOutcome::reused`).
     pub interiors_reused: usize,
     pub face_blocks_reused: usize,
+    /// Subdomains whose coarse blocks (`Z_E`, `L_E`, `G_E`) were taken over
+    /// from the previous set-up: same operator and same macro columns on
+    /// their interfaces, so no multi-RHS solve.
+    pub coarse_blocks_reused: usize,
     /// Deluxe blocks (a face's, or one edge's) computed from the interior
     /// near them only (the default `economic_deluxe` scaling, on large
     /// faces); the others are exact.
@@ -487,14 +514,21 @@ impl DdSolver {
         reused: Vec<Option<PooledSubdomain>>,
         placement: Placement,
     ) -> Result<DdSolver> {
+        let mut coarse = Vec::with_capacity(reused.len());
         let (ops, parts): (Vec<_>, Vec<_>) = reused
             .into_iter()
             .map(|p| match p {
-                Some(p) => (Some(p.op), (p.interior, p.face_blocks)),
-                None => (None, (None, Vec::new())),
+                Some(p) => {
+                    coarse.push(p.coarse);
+                    (Some(p.op), (p.interior, p.face_blocks))
+                }
+                None => {
+                    coarse.push(None);
+                    (None, (None, Vec::new()))
+                }
             })
             .unzip();
-        Self::set_up_reusing(model, dec, opts, ops, Some(parts), placement)
+        Self::set_up_reusing(model, dec, opts, ops, Some((parts, coarse)), placement)
     }
 
     fn set_up_reusing(
@@ -502,7 +536,7 @@ impl DdSolver {
         dec: &Decomposition,
         opts: DdOptions,
         reused: Vec<Option<SubdomainOperator>>,
-        pooled: Option<Vec<(Option<InteriorProblem>, Vec<FaceBlock>)>>,
+        pooled: Option<(PooledBlocks, PooledCoarse)>,
         placement: Placement,
     ) -> Result<DdSolver> {
         let t0 = Instant::now();
@@ -526,17 +560,22 @@ impl DdSolver {
     /// [`DdSolver::from_problem`]; a mechanism message names the dof that
     /// moves most with `name_dof` (a node and component for a truss).
     /// `pooled`: the interior factors and face blocks taken over, one per
-    /// subdomain held (see [`Self::new_pooled`]).
+    /// subdomain held (see [`Self::new_pooled`]), and the coarse blocks.
     fn from_problem_named(
         problem: DdProblem<'_>,
         opts: DdOptions,
         name_dof: &dyn Fn(usize) -> String,
-        mut pooled: Option<Vec<(Option<InteriorProblem>, Vec<FaceBlock>)>>,
+        pooled: Option<(PooledBlocks, PooledCoarse)>,
     ) -> Result<DdSolver> {
         let t0 = Instant::now();
         // Whether the caller keeps the Schur blocks for a later set-up (the
         // adaptive macro space hands its blocks to the cg set-up the same way).
         let retain_blocks = pooled.is_some();
+        let (mut pooled, kept_coarse) = match pooled {
+            Some((p, c)) => (Some(p), c),
+            None => (None, Vec::new()),
+        };
+        let mut kept_coarse = kept_coarse.into_iter();
         let DdProblem {
             decomposition: dec,
             mut operators,
@@ -565,6 +604,12 @@ impl DdSolver {
             )));
         }
         seam.agree(Ok(()))?;
+        // One pool entry per subdomain held (a short pool, as from
+        // `new_pooled` with nothing to take over, would leave the adaptive
+        // face sides, zipped with it, out).
+        if let Some(p) = pooled.as_mut() {
+            p.resize_with(owned.len(), Default::default);
+        }
         // Kernel dimensions of every subdomain (each process factored its own).
         let local_dims: Vec<f64> = operators.iter().map(|o| o.kernel_dim() as f64).collect();
         let kernel_dims: Vec<usize> = seam.gather(&local_dims).into_iter().map(|d| d as usize).collect();
@@ -742,6 +787,10 @@ impl DdSolver {
         let mut pooled = pooled.unwrap_or_default().into_iter();
         for (k, (op, load)) in operators.into_iter().zip(loads).enumerate() {
             let (interior, face_blocks) = pooled.next().unwrap_or_default();
+            let (z, coarse_kept) = match kept_coarse.next().flatten().filter(|_| use_coarse) {
+                Some((z, b)) => (z, Some(b)),
+                None => (Mat::zeros(0, 0), None),
+            };
             let s = first + k;
             let sd = &dec.subdomains[s];
             let n = op.n();
@@ -763,7 +812,8 @@ impl DdSolver {
                 g: vec![0.0; n],
                 iface_dofs: Vec::new(),
                 weight: vec![1.0; n],
-                z: Mat::zeros(0, 0),
+                z,
+                coarse_kept,
                 macro_cols: Vec::new(),
                 fm: Vec::new(),
                 alpha_off: alpha_offsets[s],
@@ -813,6 +863,7 @@ impl DdSolver {
 
         // Coarse operator from one batched multi-RHS solve per subdomain.
         let mut coarse = None;
+        let reused_blocks = std::sync::atomic::AtomicUsize::new(0);
         if use_coarse {
             let local_parts: Vec<CoarseContribution> = subs
                 .par_iter_mut()
@@ -837,19 +888,41 @@ impl DdSolver {
                             c += 1;
                         }
                     }
-                    let mut z = w.clone();
-                    st.op.solve_columns(&mut z, m);
                     // W_E is zero off the interface dofs: L_E = W_Iᵀ Z_I and
                     // G_E = W_Iᵀ R_I on those rows only.
                     let rows = &st.iface_dofs;
                     let wi = Mat::from_fn(rows.len(), m, |i, j| w[j * n + rows[i] as usize]);
-                    let zi = Mat::from_fn(rows.len(), m, |i, j| z[j * n + rows[i] as usize]);
-                    let kernel = st.op.kernel();
-                    let ri = Mat::from_fn(rows.len(), kernel.ncols(), |i, j| kernel[(rows[i] as usize, j)]);
-                    let l_e = wi.transpose() * &zi;
-                    let g_e = wi.transpose() * &ri;
+                    let (l_e, g_e) = match st.coarse_kept.take() {
+                        // (faer's `==` asserts equal shapes: compare them first.)
+                        Some(b)
+                            if b.rows == *rows
+                                && b.w.ncols() == m
+                                && st.z.nrows() == n
+                                && st.z.ncols() == m
+                                && b.w == wi =>
+                        {
+                            reused_blocks.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                            (b.l, b.g)
+                        }
+                        _ => {
+                            let mut z = w.clone();
+                            st.op.solve_columns(&mut z, m);
+                            let zi = Mat::from_fn(rows.len(), m, |i, j| z[j * n + rows[i] as usize]);
+                            let kernel = st.op.kernel();
+                            let ri = Mat::from_fn(rows.len(), kernel.ncols(), |i, j| kernel[(rows[i] as usize, j)]);
+                            st.z = Mat::from_fn(n, m, |i, j| z[j * n + i]);
+                            (wi.transpose() * &zi, wi.transpose() * &ri)
+                        }
+                    };
                     drop(w);
-                    st.z = Mat::from_fn(n, m, |i, j| z[j * n + i]);
+                    if retain_blocks {
+                        st.coarse_kept = Some(CoarseBlocks {
+                            rows: rows.clone(),
+                            w: wi,
+                            l: l_e.clone(),
+                            g: g_e.clone(),
+                        });
+                    }
                     st.fm = vec![0.0; m];
                     st.macro_cols = cols.clone();
                     CoarseContribution {
@@ -908,6 +981,7 @@ impl DdSolver {
             interior_s: 0.0,
             interiors_reused: 0,
             face_blocks_reused: 0,
+            coarse_blocks_reused: reused_blocks.into_inner(),
             near_blocks: 0,
             coarse_s: if use_coarse {
                 t_coarse.elapsed().as_secs_f64() - adaptive_s
@@ -1109,6 +1183,7 @@ impl DdSolver {
                 op: s.op,
                 interior: s.interior,
                 face_blocks: s.face_blocks.unwrap_or_default(),
+                coarse: s.coarse_kept.map(|b| (s.z, b)),
             })
             .collect()
     }
@@ -1409,8 +1484,80 @@ mod tests {
         let mut again = DdSolver::new_pooled(&model, &dec, opts, pooled, Placement::Process).unwrap();
         assert_eq!(again.stats.interiors_reused, dec.len());
         assert_eq!(again.stats.face_blocks_reused, faces);
+        assert_eq!(again.stats.coarse_blocks_reused, dec.len());
         let b = again.solve(&f, false, None).unwrap();
         assert_eq!(a.iterations, b.iterations);
         assert!(a.u.iter().zip(&b.u).all(|(x, y)| x.to_bits() == y.to_bits()));
+    }
+
+    /// Coarse blocks are taken over only where the macro columns are the
+    /// same: a set-up whose macro space grew (adaptive columns) from a
+    /// pool of one without them solves with the bits of a fresh set-up of
+    /// its own, its enriched subdomains solved again. Taking `Z_E`, `L_E`
+    /// over by the operator alone would pair them with the wrong columns
+    /// (or panic on their sizes).
+    #[test]
+    fn coarse_blocks_are_taken_over_only_for_the_same_macro_columns() {
+        // The README's tower, taut: bars 1e4 × the cables, 4 subdomains.
+        let scene = crate::generate::tower(&crate::generate::TowerParams {
+            nx: 2,
+            ny: 2,
+            nz: 10,
+            unilateral: false,
+            ..Default::default()
+        });
+        let model = Model::from_scene(&scene).unwrap();
+        let dec = crate::solve::decompose(&model, &scene, 4).unwrap();
+        let (_, _, mut opts) = cg_test_problem();
+        (opts.tolerance, opts.max_iterations) = (1e-8, 500);
+        let f = model.load_cases[0].clone();
+        let plain = DdSolver::new_pooled(&model, &dec, opts.clone(), Vec::new(), Placement::Process).unwrap();
+        // Operators and coarse blocks only: the adaptive set-up takes kept
+        // face blocks over as its principal blocks, which have other bits.
+        let pooled: Vec<Option<PooledSubdomain>> = plain
+            .into_pooled()
+            .into_iter()
+            .map(|p| {
+                Some(PooledSubdomain {
+                    interior: None,
+                    face_blocks: Vec::new(),
+                    ..p
+                })
+            })
+            .collect();
+        opts.adaptive_threshold = 10.0;
+        let mut fresh = DdSolver::new_pooled(&model, &dec, opts.clone(), Vec::new(), Placement::Process).unwrap();
+        assert!(fresh.stats.adaptive_columns > 0, "the threshold adds columns");
+        let mut again = DdSolver::new_pooled(&model, &dec, opts.clone(), pooled, Placement::Process).unwrap();
+        let kept = again.stats.coarse_blocks_reused;
+        assert!(kept < dec.len(), "{kept} of {} subdomains kept stale blocks", dec.len());
+        let a = fresh.solve(&f, false, None).unwrap();
+        let b = again.solve(&f, false, None).unwrap();
+        assert_eq!(a.status, Status::Converged);
+        assert_eq!(a.iterations, b.iterations);
+        assert!(a.u.iter().zip(&b.u).all(|(x, y)| x.to_bits() == y.to_bits()));
+        // Blocks kept for other columns of the same shape (here: the
+        // columns negated, the blocks zeroed) are not taken over either.
+        let pooled: Vec<Option<PooledSubdomain>> = again
+            .into_pooled()
+            .into_iter()
+            .map(|mut p| {
+                if let Some((z, b)) = p.coarse.as_mut() {
+                    b.w = -&b.w;
+                    b.l.fill(0.0);
+                    b.g.fill(0.0);
+                    z.fill(0.0);
+                }
+                Some(PooledSubdomain {
+                    interior: None,
+                    face_blocks: Vec::new(),
+                    ..p
+                })
+            })
+            .collect();
+        let mut third = DdSolver::new_pooled(&model, &dec, opts, pooled, Placement::Process).unwrap();
+        assert_eq!(third.stats.coarse_blocks_reused, 0);
+        let c = third.solve(&f, false, None).unwrap();
+        assert!(a.u.iter().zip(&c.u).all(|(x, y)| x.to_bits() == y.to_bits()));
     }
 }

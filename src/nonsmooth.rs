@@ -26,7 +26,8 @@
 //! layout changed are refactored: the others take their operator over from
 //! the previous set-up (see [`NonsmoothOutcome::reused`]), and, where their
 //! interface dofs are unchanged too, their interior (Dirichlet) factor and
-//! the deluxe face blocks of their unchanged faces. The last set-up is
+//! the deluxe face blocks of their unchanged faces; and, where their macro
+//! columns are unchanged too, their coarse blocks. The last set-up is
 //! kept, so load steps and load cases whose set does not change cost no
 //! set-up.
 //!
@@ -39,8 +40,8 @@
 //! tolerance and iterations, set-up and CG time, coarse sizes) to stderr,
 //! and why an exact set-up gave way to a softened one.
 //!
-//! Not done yet: reusing the coarse contributions and the orderings of
-//! unchanged subdomains, and low-rank updates instead of refactoring.
+//! Not done yet: low-rank updates instead of refactoring, and reusing the
+//! factorization of the coarse problem itself.
 
 use crate::comm::Placement;
 use crate::dd::{DdOptions, DdSolver, PooledSubdomain};
@@ -198,6 +199,10 @@ pub struct NonsmoothOutcome {
     pub interiors_reused: usize,
     /// ...and their deluxe face blocks on the faces that did not change.
     pub face_blocks_reused: usize,
+    /// Of the reused subdomains, those whose macro columns did not change
+    /// either (nor, so, their neighbours' kernels): their coarse blocks and
+    /// `K⁺ W` were taken over, no multi-RHS solve.
+    pub coarse_blocks_reused: usize,
     /// Element elongations, each measured in its own subdomain's copy
     /// (slack cables, outside the last set-up's structure, from the
     /// assembled displacement): see [`crate::outcome::Outcome::elongations`].
@@ -238,6 +243,7 @@ struct Pool {
     reused: usize,
     interiors_reused: usize,
     face_blocks_reused: usize,
+    coarse_blocks_reused: usize,
 }
 
 impl Pool {
@@ -263,6 +269,7 @@ impl Pool {
         let dd = DdSolver::new_pooled(lin, dec, opts.clone(), reused, self.placement.clone())?;
         self.interiors_reused += dd.stats().interiors_reused;
         self.face_blocks_reused += dd.stats().face_blocks_reused;
+        self.coarse_blocks_reused += dd.stats().coarse_blocks_reused;
         Ok((dd, keys))
     }
 }
@@ -618,6 +625,7 @@ impl NonsmoothCg {
         self.pool.reused = 0;
         self.pool.interiors_reused = 0;
         self.pool.face_blocks_reused = 0;
+        self.pool.coarse_blocks_reused = 0;
         let mut seen: HashSet<Vec<bool>> = HashSet::new();
         let mut murty = false;
         // Relative size of the last violation; none measured yet.
@@ -777,7 +785,7 @@ impl NonsmoothCg {
                 );
                 let st = self.current.as_ref().unwrap().dd.stats();
                 eprintln!(
-                    "   kernel {} macro {} nnz_l {} factor {:.3}s coarse {:.3}s interior {:.3}s scaling {:.3}s; subdomains factored {} reused {} (interiors {}, face blocks {}) so far",
+                    "   kernel {} macro {} nnz_l {} factor {:.3}s coarse {:.3}s interior {:.3}s scaling {:.3}s; subdomains factored {} reused {} (interiors {}, face blocks {}, coarse blocks {}) so far",
                     st.kernel_unknowns,
                     st.macro_unknowns,
                     st.nnz_l,
@@ -788,7 +796,8 @@ impl NonsmoothCg {
                     self.pool.factored,
                     self.pool.reused,
                     self.pool.interiors_reused,
-                    self.pool.face_blocks_reused
+                    self.pool.face_blocks_reused,
+                    self.pool.coarse_blocks_reused
                 );
             }
             if let Some(h) = history.last_mut() {
@@ -826,6 +835,7 @@ impl NonsmoothCg {
                     reused: self.pool.reused,
                     interiors_reused: self.pool.interiors_reused,
                     face_blocks_reused: self.pool.face_blocks_reused,
+                    coarse_blocks_reused: self.pool.coarse_blocks_reused,
                     elongations,
                     message: inner_message,
                 });
@@ -860,6 +870,7 @@ impl NonsmoothCg {
                     reused: self.pool.reused,
                     interiors_reused: self.pool.interiors_reused,
                     face_blocks_reused: self.pool.face_blocks_reused,
+                    coarse_blocks_reused: self.pool.coarse_blocks_reused,
                     elongations,
                     message,
                 });

@@ -401,6 +401,14 @@ fn unchanged_subdomains_are_not_refactored() {
                 out.reused
             );
             assert!(out.face_blocks_reused >= 2 * out.interiors_reused);
+            // Subdomains away from the push keep their macro columns too, and
+            // with them their coarse blocks (no multi-RHS solve).
+            assert!(
+                out.coarse_blocks_reused > 0 && out.coarse_blocks_reused <= out.reused,
+                "{} coarse blocks kept of {} operators reused",
+                out.coarse_blocks_reused,
+                out.reused
+            );
         }
         previous = Some(slack);
     }
