@@ -1463,7 +1463,8 @@ mod tests {
     use crate::outcome::Status;
 
     /// A set-up that takes every subdomain over from an earlier one of the
-    /// same structure (operators, interior factors, deluxe face blocks)
+    /// same structure (operators, interior factors, deluxe face blocks,
+    /// coarse blocks)
     /// solves with the same bits as a fresh one: what it takes over is
     /// what it would have computed. A stale interior factor or face block
     /// (of another interface) would change the preconditioner, and with it

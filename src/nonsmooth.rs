@@ -200,8 +200,8 @@ pub struct NonsmoothOutcome {
     /// ...and their deluxe face blocks on the faces that did not change.
     pub face_blocks_reused: usize,
     /// Of the reused subdomains, those whose macro columns did not change
-    /// either (nor, so, their neighbours' kernels): their coarse blocks and
-    /// `K⁺ W` were taken over, no multi-RHS solve.
+    /// either (no neighbour's kernel changed): their coarse blocks and
+    /// `K⁺ W` were taken over, without a multi-RHS solve.
     pub coarse_blocks_reused: usize,
     /// Element elongations, each measured in its own subdomain's copy
     /// (slack cables, outside the last set-up's structure, from the
