@@ -1515,17 +1515,14 @@ mod tests {
         let plain = DdSolver::new_pooled(&model, &dec, opts.clone(), Vec::new(), Placement::Process).unwrap();
         // Operators and coarse blocks only: the adaptive set-up takes kept
         // face blocks over as its principal blocks, which have other bits.
-        let pooled: Vec<Option<PooledSubdomain>> = plain
-            .into_pooled()
-            .into_iter()
-            .map(|p| {
-                Some(PooledSubdomain {
-                    interior: None,
-                    face_blocks: Vec::new(),
-                    ..p
-                })
+        let strip = |p: PooledSubdomain| {
+            Some(PooledSubdomain {
+                interior: None,
+                face_blocks: Vec::new(),
+                ..p
             })
-            .collect();
+        };
+        let pooled: Vec<Option<PooledSubdomain>> = plain.into_pooled().into_iter().map(strip).collect();
         opts.adaptive_threshold = 10.0;
         let mut fresh = DdSolver::new_pooled(&model, &dec, opts.clone(), Vec::new(), Placement::Process).unwrap();
         assert!(fresh.stats.adaptive_columns > 0, "the threshold adds columns");
@@ -1549,11 +1546,7 @@ mod tests {
                     b.g.fill(0.0);
                     z.fill(0.0);
                 }
-                Some(PooledSubdomain {
-                    interior: None,
-                    face_blocks: Vec::new(),
-                    ..p
-                })
+                strip(p)
             })
             .collect();
         let mut third = DdSolver::new_pooled(&model, &dec, opts, pooled, Placement::Process).unwrap();
