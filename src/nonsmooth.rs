@@ -799,6 +799,19 @@ impl NonsmoothCg {
                     self.pool.face_blocks_reused,
                     self.pool.coarse_blocks_reused
                 );
+                // How the flips spread over the subdomains (of the user's
+                // partition): what a low-rank update of each factor would
+                // have to absorb instead of a refactorization.
+                let mut per = vec![0usize; self.dec.len()];
+                for c in (0..nc).filter(|&c| next[c] != slack[c]) {
+                    per[self.dec.partition.part_of[model.cables[c]]] += 1;
+                }
+                let touched = per.iter().filter(|&&k| k > 0).count();
+                eprintln!(
+                    "   flips in {touched} of {} subdomains, at most {} in one",
+                    per.len(),
+                    per.iter().max().copied().unwrap_or(0)
+                );
             }
             if let Some(h) = history.last_mut() {
                 h.cable_change = Some(violation);
