@@ -1442,8 +1442,14 @@ pub(crate) fn cg_test_problem() -> (Model, Decomposition, DdOptions) {
         unilateral: false,
         ..Default::default()
     });
-    let model = Model::from_scene(&scene).unwrap();
-    let dec = crate::solve::decompose(&model, &scene, 6).unwrap();
+    cg_test_problem_on(&scene, 6)
+}
+
+/// [`cg_test_problem`]'s options on `scene` cut into `subdomains`.
+#[cfg(test)]
+pub(crate) fn cg_test_problem_on(scene: &crate::scene::Scene, subdomains: usize) -> (Model, Decomposition, DdOptions) {
+    let model = Model::from_scene(scene).unwrap();
+    let dec = crate::solve::decompose(&model, scene, subdomains).unwrap();
     let opts = DdOptions {
         coarse: true,
         tolerance: 1e-8,
@@ -1507,9 +1513,7 @@ mod tests {
             unilateral: false,
             ..Default::default()
         });
-        let model = Model::from_scene(&scene).unwrap();
-        let dec = crate::solve::decompose(&model, &scene, 4).unwrap();
-        let (_, _, mut opts) = cg_test_problem();
+        let (model, dec, mut opts) = cg_test_problem_on(&scene, 4);
         (opts.tolerance, opts.max_iterations) = (1e-8, 500);
         let f = model.load_cases[0].clone();
         let plain = DdSolver::new_pooled(&model, &dec, opts.clone(), Vec::new(), Placement::Process).unwrap();

@@ -1212,6 +1212,15 @@ pub fn orthonormal_columns(a: &Mat<f64>, rtol: f64) -> Mat<f64> {
 mod tests {
     use super::*;
 
+    /// `K_FF − K_FI K_II⁻¹ K_IF` of the dense `k` for the rows `f` over
+    /// the dofs `inner` (dense Cholesky): the reference Schur blocks.
+    fn dense_schur(k: &Mat<f64>, f: &[usize], inner: &[usize]) -> Mat<f64> {
+        use faer::linalg::solvers::Solve;
+        let pick = |rows: &[usize], cols: &[usize]| Mat::from_fn(rows.len(), cols.len(), |i, j| k[(rows[i], cols[j])]);
+        let (kff, kfi, kii) = (pick(f, f), pick(f, inner), pick(inner, inner));
+        &kff - &kfi * kii.llt(faer::Side::Lower).unwrap().solve(kfi.transpose())
+    }
+
     /// The operator of an `m × m × depth` lattice (`lattice_triplets`) and
     /// its stiffness as a dense matrix.
     fn lattice_operator(m: usize, depth: usize) -> (SubdomainOperator, Mat<f64>) {
@@ -1247,11 +1256,7 @@ mod tests {
                 .collect();
             let interior: Vec<usize> = (0..n).filter(|&p| !on_face(p) && !on_other(p)).collect();
             let f: Vec<usize> = face.iter().map(|&p| p as usize).collect();
-            let pick =
-                |rows: &[usize], cols: &[usize]| Mat::from_fn(rows.len(), cols.len(), |i, j| dense[(rows[i], cols[j])]);
-            let (kff, kfi, kii) = (pick(&f, &f), pick(&f, &interior), pick(&interior, &interior));
-            use faer::linalg::solvers::Solve;
-            let want = &kff - &kfi * kii.llt(faer::Side::Lower).unwrap().solve(kfi.transpose());
+            let want = dense_schur(&dense, &f, &interior);
             let mut ip = InteriorProblem::new(&op, &boundary).unwrap();
             assert_eq!(ip.chol.as_ref().unwrap().is_supernodal(), depth > 1);
             for ratio in [0, 1 << 20] {
@@ -1286,11 +1291,7 @@ mod tests {
                 .filter(|&p| (1..=4).contains(&layer(p)) && layer(p) < depth - 1)
                 .collect();
             let f: Vec<usize> = face.iter().map(|&p| p as usize).collect();
-            let pick =
-                |rows: &[usize], cols: &[usize]| Mat::from_fn(rows.len(), cols.len(), |i, j| dense[(rows[i], cols[j])]);
-            let (kff, kfn, knn) = (pick(&f, &f), pick(&f, &near), pick(&near, &near));
-            use faer::linalg::solvers::Solve;
-            let want = &kff - &kfn * knn.llt(faer::Side::Lower).unwrap().solve(kfn.transpose());
+            let want = dense_schur(&dense, &f, &near);
             let mut ip = InteriorProblem::new(&op, &boundary).unwrap();
             assert!(ip.schur_block_near(&op, &face).unwrap().is_none(), "small: exact");
             let got = ip.schur_block_near_with(&op, &face, 0).unwrap().expect("near block");
