@@ -836,3 +836,55 @@ fn subdomains_free_to_translate_are_floating() {
         dec.len()
     );
 }
+
+/// A direction of negative energy is never taken for a mechanism. A stiff
+/// grounded chain and a soft floating one (contrast 1e4), made slightly
+/// indefinite along the soft chain's translation (`K − ε r rᵀ`): its pivot
+/// is far below the scan's negligible threshold (1e-6 of the largest
+/// diagonal entry), so it is fixed like a mechanism's, and `‖K r‖ / ‖K‖`
+/// (1e-9) passes the kernel check. Only its energy tells: negative, far
+/// beyond round-off. Without the negative perturbation the same matrix has
+/// the one mechanism.
+#[test]
+fn negative_energy_is_refused_as_indefinite_not_taken_for_a_mechanism() {
+    use nsdd::error::Error;
+    use nsdd::factor::lower_csc;
+    use nsdd::subdomain::SubdomainOperator;
+    let (stiff, soft) = (6, 4);
+    let n = stiff + soft;
+    for eps in [0.0, 1e-9] {
+        let mut trip = Vec::new();
+        let mut spring = |a: usize, b: usize, s: f64| {
+            trip.extend([(a, a, s), (b, b, s), (a.max(b), a.min(b), -s)]);
+        };
+        for i in 0..stiff - 1 {
+            spring(i, i + 1, 1.0);
+        }
+        for i in stiff..n - 1 {
+            spring(i, i + 1, 1e-4);
+        }
+        trip.push((0, 0, 1.0));
+        // −ε r rᵀ on the soft chain, r = its translation.
+        for i in stiff..n {
+            for j in stiff..=i {
+                trip.push((i, j, -eps));
+            }
+        }
+        let lower = lower_csc(n, &trip).unwrap();
+        let op = SubdomainOperator::from_matrix(0, lower, 1, None, None, &|l| format!("dof {l}"));
+        if eps == 0.0 {
+            assert_eq!(op.expect("a floating chain").kernel_dim(), 1);
+        } else {
+            match op {
+                Err(Error::IndefiniteSubdomain { subdomain: 0, message }) => {
+                    assert!(message.contains("negative energy"), "{message}")
+                }
+                Err(e) => panic!("expected an indefinite subdomain, got {e}"),
+                Ok(op) => panic!(
+                    "a direction of negative energy was taken for a mechanism (kernel dim {})",
+                    op.kernel_dim()
+                ),
+            }
+        }
+    }
+}
