@@ -227,6 +227,14 @@ pub struct NonsmoothCg {
     /// it with its weak nodes repaired: set once an inner solve stalled on
     /// a repaired partition (see [`NonsmoothCg::solve`]).
     unrepaired_first: bool,
+    /// Set when, after that switch, a set could not be set up on the
+    /// plain restriction and fell back to the repaired partition: later
+    /// sets go to the repaired partition first again. Trying the plain
+    /// restriction first cost a failed set-up at every later step (the
+    /// 1e6-dof grid with 256 subdomains: a subdomain with 264 mechanisms
+    /// where 256 are allowed, step after step, 13 s of set-up per step
+    /// became 29 s).
+    plain_unusable: bool,
     /// Outer steps without progress before a solve stops ([`UNSETTLED_STEPS`]).
     unsettled_steps: usize,
 }
@@ -444,6 +452,7 @@ impl NonsmoothCg {
                 ..Pool::default()
             },
             unrepaired_first: false,
+            plain_unusable: false,
             unsettled_steps: UNSETTLED_STEPS,
         })
     }
@@ -535,7 +544,9 @@ impl NonsmoothCg {
             max_iterations: self.opts.max_iterations,
             search_direction: SearchDirection::Auto,
         };
-        let (own, pool, unrepaired_first) = (&self.dec, &mut self.pool, self.unrepaired_first);
+        let (own, pool) = (&self.dec, &mut self.pool);
+        let unrepaired_first = self.unrepaired_first && !self.plain_unusable;
+        let mut plain_failed = false;
         let step = if soft || !slack.iter().any(|&s| s) {
             let lin = linear_model(model, slack, if soft { SOFT } else { 0.0 });
             let (dd, keys) = pool.setup(&lin, own, None, &opts)?;
@@ -568,6 +579,13 @@ impl NonsmoothCg {
                         break;
                     }
                     Err(e) => {
+                        plain_failed |= !repair;
+                        if std::env::var_os("NSDD_NS_DEBUG").is_some() {
+                            eprintln!(
+                                "   the set-up on the {} partition failed: {e}",
+                                if repair { "repaired" } else { "plainly restricted" }
+                            );
+                        }
                         first_err.get_or_insert(e);
                     }
                 }
@@ -580,6 +598,12 @@ impl NonsmoothCg {
                 }
             }
             let (dd, dec, keys, elements, repaired) = found.expect("set above");
+            if unrepaired_first && plain_failed && repaired {
+                if std::env::var_os("NSDD_NS_DEBUG").is_some() {
+                    eprintln!("   the plain restriction cannot be set up: the repaired partition comes first again");
+                }
+                self.plain_unusable = true;
+            }
             Step {
                 slack: slack.to_vec(),
                 soft,
@@ -720,6 +744,9 @@ impl NonsmoothCg {
             // stalled the inner cg at 2e-4 where the plain restriction
             // converges. It stays first otherwise: its subdomains have fewer
             // mechanisms, and the set-ups cost 1.5x less on the 65² grid.
+            // Where the plain restriction then cannot be set up at all (too
+            // many mechanisms in a subdomain), the repaired partition comes
+            // first again for good (`plain_unusable`).
             if out.status == Status::Stalled
                 && !self.unrepaired_first
                 && self.current.as_ref().is_some_and(|s| s.repaired)
@@ -727,7 +754,7 @@ impl NonsmoothCg {
                 if std::env::var_os("NSDD_NS_DEBUG").is_some() {
                     let st = self.current.as_ref().unwrap().dd.stats();
                     eprintln!(
-                        "outer {outer}: {} slack on the repaired partition stalled after {} its (kernel {} macro {}): every set goes to the plain restriction from now on",
+                        "outer {outer}: {} slack on the repaired partition stalled after {} its (kernel {} macro {}): every set goes to the plain restriction first from now on",
                         slack.iter().filter(|&&s| s).count(),
                         out.iterations,
                         st.kernel_unknowns,
