@@ -322,19 +322,7 @@ impl SubdomainOperator {
             // The released ones are soft, not singular: their pivots may sit
             // below SUBDOMAIN_PIVOT_RATIO (1e-10 at contrast 1e8) and must not
             // be fixed again; anything below RELEASED_PIVOT_RATIO is.
-            let mut fixing = keep;
-            op.chol = factor_with_fixing(
-                &op.stiffness,
-                order,
-                &mut fixing,
-                scale,
-                max_rhs,
-                id,
-                &indefinite,
-                RELEASED_PIVOT_RATIO,
-            )?;
-            op.fixing = fixing;
-            cols = op.fixed_kernel_columns();
+            cols = op.pin(keep, order, max_rhs, scale, &indefinite)?;
         }
         op.settle_kernel(cols, order, max_rhs, scale, &indefinite)?;
         Ok(op)
@@ -427,20 +415,33 @@ impl SubdomainOperator {
                 ));
             }
             rescued = true;
-            let mut fixing = well_spread_rows(&q);
-            self.chol = factor_with_fixing(
-                &self.stiffness,
-                order,
-                &mut fixing,
-                scale,
-                max_rhs,
-                id,
-                &indefinite,
-                RELEASED_PIVOT_RATIO,
-            )?;
-            self.fixing = fixing;
-            cols = self.fixed_kernel_columns();
+            cols = self.pin(well_spread_rows(&q), order, max_rhs, scale, indefinite)?;
         }
+    }
+
+    /// Factors the subdomain again with the fixing dofs `fixing` (and any
+    /// pivot that still fails below `RELEASED_PIVOT_RATIO`) and returns
+    /// their kernel columns ([`Self::fixed_kernel_columns`]).
+    fn pin(
+        &mut self,
+        mut fixing: Vec<usize>,
+        order: &EliminationOrder,
+        max_rhs: usize,
+        scale: f64,
+        indefinite: &dyn Fn(usize, String) -> Error,
+    ) -> Result<Vec<f64>> {
+        self.chol = factor_with_fixing(
+            &self.stiffness,
+            order,
+            &mut fixing,
+            scale,
+            max_rhs,
+            self.id,
+            indefinite,
+            RELEASED_PIVOT_RATIO,
+        )?;
+        self.fixing = fixing;
+        Ok(self.fixed_kernel_columns())
     }
 
     /// `R = [−K_rr⁻¹ K_rf; I]`, column-major `n × |F|`: the kernel vector of
