@@ -667,73 +667,55 @@ fn mechanism_dofs_by_span(
     }
     // Value of mechanism t at suspect i: (B W y_t)[fixing[i]] = (W y_t)_i / norms_i.
     let z = &w * cy.get(.., 0..k);
-    let mut rows: Vec<Vec<f64>> = (0..m).map(|i| (0..k).map(|t| z[(i, t)] / norms[i]).collect()).collect();
-    let mut chosen = Vec::with_capacity(k);
-    for _ in 0..k {
-        let best = (0..m)
-            .filter(|i| !chosen.contains(i))
-            .fold(None, |b: Option<(usize, f64)>, i| {
-                let v = kernels::norm2(&rows[i]);
-                if b.is_none_or(|(_, bv)| v > bv) {
-                    Some((i, v))
-                } else {
-                    b
-                }
-            });
-        let Some((p, pv)) = best else { break };
-        if !(pv > 0.0) {
-            break;
-        }
-        chosen.push(p);
-        // Remove the chosen row's direction from the others (Gram–Schmidt).
-        let q: Vec<f64> = rows[p].iter().map(|v| v / pv.sqrt()).collect();
-        for row in rows.iter_mut() {
-            let d: f64 = row.iter().zip(&q).map(|(a, b)| a * b).sum();
-            row.iter_mut().zip(&q).for_each(|(a, b)| *a -= d * b);
-        }
-    }
-    let mut keep: Vec<usize> = chosen.into_iter().map(|i| fixing[i]).collect();
+    let mut rows: Vec<f64> = (0..m * k).map(|p| z[(p / k, p % k)] / norms[p / k]).collect();
+    let mut keep: Vec<usize> = pivot_rows(&mut rows, k, k).into_iter().map(|i| fixing[i]).collect();
     keep.sort_unstable();
     Ok(keep)
 }
 
 /// `r` rows of the orthonormal basis `q` (`n × r`) chosen by row pivoting
-/// (a pivoted QR of `qᵀ`): each the largest after removing the directions
-/// of those chosen before, so that the kernel restricted to them is as
-/// well conditioned as the greedy choice gets. Sorted.
+/// ([`pivot_rows`]), so that the kernel restricted to them is as well
+/// conditioned as the greedy choice gets. Sorted.
 fn well_spread_rows(q: &Mat<f64>) -> Vec<usize> {
-    let (n, r) = (q.nrows(), q.ncols());
-    let mut rows: Vec<f64> = (0..n * r).map(|p| q[(p / r, p % r)]).collect();
-    let mut chosen = Vec::with_capacity(r);
+    let r = q.ncols();
+    let mut rows: Vec<f64> = (0..q.nrows() * r).map(|p| q[(p / r, p % r)]).collect();
+    let mut chosen = pivot_rows(&mut rows, r, r);
+    chosen.sort_unstable();
+    chosen
+}
+
+/// Greedy row pivoting (a pivoted QR of the transpose) on the row-major
+/// `rows` of `width` columns: up to `count` rows, each the largest once the
+/// directions of those chosen before are removed from all (Gram–Schmidt);
+/// stops at a zero row. In the order chosen; `rows` is overwritten.
+fn pivot_rows(rows: &mut [f64], width: usize, count: usize) -> Vec<usize> {
+    let n = rows.len() / width.max(1);
+    let mut chosen = Vec::with_capacity(count);
     let mut taken = vec![false; n];
-    let mut u = vec![0.0; r];
-    for _ in 0..r {
-        let best = (0..n)
-            .filter(|&i| !taken[i])
-            .map(|i| (i, kernels::norm2(&rows[i * r..(i + 1) * r])))
-            .fold(None, |b: Option<(usize, f64)>, (i, v)| {
-                if b.is_none_or(|(_, bv)| v > bv) {
-                    Some((i, v))
-                } else {
-                    b
-                }
-            });
+    let mut q = vec![0.0; width];
+    for _ in 0..count {
+        let best = (0..n).filter(|&i| !taken[i]).fold(None, |b: Option<(usize, f64)>, i| {
+            let v = kernels::norm2(&rows[i * width..(i + 1) * width]);
+            if b.is_none_or(|(_, bv)| v > bv) {
+                Some((i, v))
+            } else {
+                b
+            }
+        });
         let Some((p, pv)) = best else { break };
         if !(pv > 0.0) {
             break;
         }
         taken[p] = true;
         chosen.push(p);
-        let scale = 1.0 / pv.sqrt();
-        u.iter_mut()
-            .zip(&rows[p * r..(p + 1) * r])
-            .for_each(|(a, &b)| *a = b * scale);
-        for row in rows.chunks_exact_mut(r) {
-            let d: f64 = row.iter().zip(&u).map(|(a, b)| a * b).sum();
-            row.iter_mut().zip(&u).for_each(|(a, b)| *a -= d * b);
+        q.iter_mut()
+            .zip(&rows[p * width..(p + 1) * width])
+            .for_each(|(a, &v)| *a = v / pv.sqrt());
+        for row in rows.chunks_exact_mut(width) {
+            let d: f64 = row.iter().zip(&q).map(|(a, b)| a * b).sum();
+            row.iter_mut().zip(&q).for_each(|(a, b)| *a -= d * b);
         }
     }
-    chosen.sort_unstable();
     chosen
 }
 
