@@ -268,14 +268,8 @@ impl SubdomainOperator {
         // Suspects include soft pivots, released below: bound them loosely
         // here (the dense kernel columns cost n × |F|), the kernel itself
         // strictly once they are sorted out.
-        let too_many = |dim: usize| Error::IndefiniteSubdomain {
-            subdomain: id,
-            message: format!(
-                "kernel of dimension {dim} exceeds {MAX_KERNEL_DIM}: the partition cuts it into loose pieces"
-            ),
-        };
         if fixing.len() > MAX_SUSPECTS {
-            return Err(too_many(fixing.len()));
+            return Err(kernel_too_large(id, fixing.len()));
         }
         let scale = diag_max(&stiffness);
         let chol = factor_with_fixing(
@@ -353,12 +347,7 @@ impl SubdomainOperator {
         loop {
             let r = self.fixing.len();
             if r > MAX_KERNEL_DIM {
-                return Err(Error::IndefiniteSubdomain {
-                    subdomain: id,
-                    message: format!(
-                        "kernel of dimension {r} exceeds {MAX_KERNEL_DIM}: the partition cuts it into loose pieces"
-                    ),
-                });
+                return Err(kernel_too_large(id, r));
             }
             let raw = Mat::from_fn(n, r, |i, j| cols[j * n + i]);
             let q = orthonormal_columns(&raw, 1e-10);
@@ -385,7 +374,7 @@ impl SubdomainOperator {
                     let (v, l) = (e.U(), e.S().column_vector());
                     if l[0] < -NEGATIVE_ENERGY_TOL * scale {
                         let x = &q * v.get(.., 0..1);
-                        let worst = (0..n).fold(0, |b, i| if x[(i, 0)].abs() > x[(b, 0)].abs() { i } else { b });
+                        let worst = largest_entry(x.col(0).iter().copied());
                         return Err(negative_energy(
                             indefinite,
                             NegativeEnergy {
@@ -400,7 +389,7 @@ impl SubdomainOperator {
                 let (col, kr) = (&qc[j * n..(j + 1) * n], &kq[j * n..(j + 1) * n]);
                 let res = kr.iter().map(|v| v * v).sum::<f64>().sqrt() / scale;
                 (!(res < KERNEL_TOL)).then(|| {
-                    let worst = (0..n).fold(0, |b, i| if col[i].abs() > col[b].abs() { i } else { b });
+                    let worst = largest_entry(col.iter().copied());
                     (worst, res)
                 })
             });
@@ -594,6 +583,27 @@ struct NegativeEnergy {
     quotient: f64,
 }
 
+/// A kernel (or a set of suspects) larger than [`MAX_KERNEL_DIM`].
+fn kernel_too_large(id: usize, dim: usize) -> Error {
+    Error::IndefiniteSubdomain {
+        subdomain: id,
+        message: format!("kernel of dimension {dim} exceeds {MAX_KERNEL_DIM}: the partition cuts it into loose pieces"),
+    }
+}
+
+/// Index of the entry of largest magnitude (the first of equals; 0 if empty).
+fn largest_entry(v: impl Iterator<Item = f64>) -> usize {
+    v.enumerate()
+        .fold((0, f64::NEG_INFINITY), |(b, bv), (i, x)| {
+            if x.abs() > bv {
+                (i, x.abs())
+            } else {
+                (b, bv)
+            }
+        })
+        .0
+}
+
 /// The error for a direction of negative energy.
 fn negative_energy(indefinite: &dyn Fn(usize, String) -> Error, e: NegativeEnergy) -> Error {
     indefinite(
@@ -646,13 +656,7 @@ fn mechanism_dofs_by_span(
     if cl[0] < -NEGATIVE_ENERGY_TOL * scale {
         // Name the suspect that carries most of the negative direction.
         let z = &w * cy.get(.., 0..1);
-        let at = (0..m).fold(0, |b, i| {
-            if (z[(i, 0)] / norms[i]).abs() > (z[(b, 0)] / norms[b]).abs() {
-                i
-            } else {
-                b
-            }
-        });
+        let at = largest_entry((0..m).map(|i| z[(i, 0)] / norms[i]));
         return Err(NegativeEnergy {
             dof: fixing[at],
             quotient: cl[0] / scale,
