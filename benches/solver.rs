@@ -83,6 +83,7 @@ fn multilevel(max_iterations: usize) -> DdOptions {
         preconditioner: Default::default(),
         interface_scaling: Default::default(),
         adaptive_threshold: 0.0,
+        ordering: Default::default(),
     }
 }
 
@@ -118,7 +119,7 @@ fn subdomain_solve(c: &mut Criterion) {
         let scene = grid_scene(n, false);
         let model = Model::from_scene(&scene).unwrap();
         let dec = decompose(&model, &scene, 1).unwrap();
-        let mut op = SubdomainOperator::new(0, &model, &dec.subdomains[0], 64).unwrap();
+        let mut op = SubdomainOperator::new(0, &model, &dec.subdomains[0], 64, Default::default()).unwrap();
         let dofs = op.n();
         eprintln!("subdomain_solve: n={n}: {dofs} dofs, nnz(L) = {}", op.nnz_l());
         let mut evict = vec![0.0f64; EVICT_BYTES / 8];

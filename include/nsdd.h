@@ -543,6 +543,18 @@ enum NsddStatus nsdd_options_set_adaptive_threshold(struct NsddOptions *options,
 enum NsddStatus nsdd_options_set_partitioner(struct NsddOptions *options, uint32_t partitioner);
 
 /**
+ * Sets the fill-reducing ordering of the sparse factorizations (the
+ * whole structure's, each subdomain's and each Dirichlet interior's),
+ * overriding the scene's `[solver] ordering`: 0 auto (AMD, and nested
+ * dissection where AMD fills more than 5 nnz(K); the smaller fill wins),
+ * 1 AMD, 2 nested dissection; any other value is INVALID_ARGUMENT.
+ *
+ * # Safety
+ * `options` must be a live options handle.
+ */
+enum NsddStatus nsdd_options_set_ordering(struct NsddOptions *options, uint32_t ordering);
+
+/**
  * Sets the number of subdomains of the automatic partition; 0 means
  * automatic, as [`nsdd_options_set_subdomains_auto`] (ignored by the direct
  * method and at the algebraic level).

@@ -52,7 +52,7 @@ fn matrix_and_factor_bytes(n: usize, nnz_k: usize, nnz_l: usize) -> u64 {
 /// Factors and solves `scene` with the direct solver, timing each phase.
 pub fn direct_profile(scene: &Scene) -> Result<DirectProfile> {
     let model = Model::from_scene(scene)?;
-    let mut solver = DirectSolver::new(&model)?;
+    let mut solver = DirectSolver::with_ordering(&model, scene.solver.ordering)?;
     let b = model.rhs(&model.load_cases[0]);
     let t = Instant::now();
     let eq = solver.solve(&model, &b)?;
@@ -86,7 +86,8 @@ pub struct DirectAnalysis {
     pub nnz_k: usize,
     pub nnz_l: usize,
     /// Fill-reducing ordering the direct solver would use (`"amd"` or
-    /// `"nested_dissection"`: the smaller `nnz(L)`, as in [`direct_profile`]).
+    /// `"nested_dissection"`: with the scene's `ordering = "auto"`, the
+    /// smaller `nnz(L)`, as in [`direct_profile`]).
     pub ordering: String,
     /// Assembly of `K`.
     pub assembly_s: f64,
@@ -107,7 +108,8 @@ pub fn direct_analysis(scene: &Scene) -> Result<DirectAnalysis> {
     let k = crate::direct::assemble(&model)?;
     let assembly_s = t.elapsed().as_secs_f64();
     let t = Instant::now();
-    let (nnz_l, kind) = crate::factor::analyse(&k).map_err(|e| crate::error::Error::Numerical(format!("{e:?}")))?;
+    let (nnz_l, kind) = crate::factor::analyse(&k, scene.solver.ordering)
+        .map_err(|e| crate::error::Error::Numerical(format!("{e:?}")))?;
     let analysis_s = t.elapsed().as_secs_f64();
     let nnz_k = k.compute_nnz();
     Ok(DirectAnalysis {
@@ -159,6 +161,7 @@ pub fn dd_profile(scene: &Scene, subdomains: usize, iterations: usize) -> Result
         method: Method::Multilevel,
         max_iterations: 1,
         search_direction: SearchDirection::Auto,
+        ordering: scene.solver.ordering,
         ..SolverSettings::default()
     };
     let mut dd = DdSolver::new(&model, &dec, DdOptions::from_settings(&settings)?)?;

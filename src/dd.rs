@@ -23,6 +23,7 @@ use crate::coarse::{CoarseContribution, CoarseProblem, MacroBasis};
 use crate::comm::{Communicator, Placement, Seam};
 use crate::decomposition::Decomposition;
 use crate::error::{Error, Result};
+use crate::factor::OrderingKind;
 use crate::kernels::{self, Run};
 use crate::method::cg::CgWorkspace;
 pub use crate::method::stopping::{stalled, stopping_factor, CONTRACTION_CAP, CONTRACTION_WINDOW};
@@ -30,7 +31,7 @@ use crate::model::{Model, FIXED};
 use crate::operator::InterfaceOperator;
 use crate::outcome::Outcome;
 use crate::scaling::InterfaceScaling;
-use crate::settings::{MethodConfig, Preconditioner, SearchDirection, SolverSettings};
+use crate::settings::{MethodConfig, OrderingChoice, Preconditioner, SearchDirection, SolverSettings};
 use crate::subdomain::{InteriorProblem, SubdomainOperator};
 use faer::Mat;
 use rayon::prelude::*;
@@ -56,6 +57,8 @@ pub struct DdOptions {
     /// Eigenvalue threshold of the adaptive macro columns
     /// ([`crate::adaptive`]); 0: none.
     pub adaptive_threshold: f64,
+    /// Fill-reducing ordering of the subdomain and interior factors.
+    pub ordering: OrderingChoice,
 }
 
 impl DdOptions {
@@ -78,6 +81,7 @@ impl DdOptions {
             preconditioner: s.preconditioner,
             interface_scaling: s.interface_scaling,
             adaptive_threshold: s.adaptive_threshold,
+            ordering: s.ordering,
         })
     }
 }
@@ -159,7 +163,7 @@ impl<'a> DdProblem<'a> {
     /// Builds the algebraic problem of a truss model (factors every
     /// subdomain in parallel).
     pub fn from_model(model: &Model, dec: &'a Decomposition) -> Result<DdProblem<'a>> {
-        Self::from_model_reusing(model, dec, Vec::new(), Placement::Process)
+        Self::from_model_reusing(model, dec, Vec::new(), Placement::Process, OrderingChoice::Auto)
     }
 
     /// [`Self::from_model`], taking `reused[s]` (when `Some`) as subdomain
@@ -170,12 +174,13 @@ impl<'a> DdProblem<'a> {
     /// changed). Missing entries are factored. Only the subdomains
     /// `placement` gives this process are factored (`reused` is indexed by
     /// their position in that block); a failure on any process is returned
-    /// on every process.
+    /// on every process. `ordering` is the factors' fill-reducing ordering.
     pub fn from_model_reusing(
         model: &Model,
         dec: &'a Decomposition,
         mut reused: Vec<Option<SubdomainOperator>>,
         placement: Placement,
+        ordering: OrderingChoice,
     ) -> Result<DdProblem<'a>> {
         let owned = placement.owned(dec.len());
         reused.resize_with(owned.len(), || None);
@@ -190,7 +195,7 @@ impl<'a> DdProblem<'a> {
                         op.id = i;
                         Ok(op)
                     }
-                    _ => SubdomainOperator::new(i, model, sd, 64),
+                    _ => SubdomainOperator::new(i, model, sd, 64, ordering),
                 }
             })
             .collect();
@@ -361,7 +366,15 @@ pub struct DdStats {
     pub adaptive_columns: usize,
     pub kernel_unknowns: usize,
     pub interface_entries: usize,
+    /// Values stored in the subdomain factors...
     pub nnz_l: usize,
+    /// ...and in the Dirichlet interiors' factors (`cg`).
+    pub interior_nnz_l: usize,
+    /// Subdomain and interior factors ordered by nested dissection (the
+    /// others by AMD).
+    pub nested_dissection_factors: usize,
+    /// Subdomain and interior factors.
+    pub factors: usize,
     pub search_direction: f64,
     /// Whole set-up (operators, macro space, coarse problem, `d`).
     pub setup_s: f64,
@@ -540,7 +553,7 @@ impl DdSolver {
         placement: Placement,
     ) -> Result<DdSolver> {
         let t0 = Instant::now();
-        let problem = DdProblem::from_model_reusing(model, dec, reused, placement)?;
+        let problem = DdProblem::from_model_reusing(model, dec, reused, placement, opts.ordering)?;
         let factor_s = t0.elapsed().as_secs_f64();
         let name_dof = |d: usize| {
             let (node, c) = model.dof_owner(d);
@@ -965,7 +978,12 @@ impl DdSolver {
             ))?);
         }
 
-        let nnz_l = seam.gather(&[subs.iter().map(|s| s.op.nnz_l() as f64).sum::<f64>()]);
+        let nd = |k: OrderingKind| (k == OrderingKind::NestedDissection) as usize as f64;
+        let op_sizes = seam.gather(&[
+            subs.iter().map(|s| s.op.nnz_l() as f64).sum::<f64>(),
+            subs.iter().map(|s| nd(s.op.ordering())).sum::<f64>(),
+        ]);
+        let total = |v: &[f64], k: usize| v.iter().skip(k).step_by(2).sum::<f64>() as usize;
         let stats = DdStats {
             subdomains: ns,
             kernel_dims: kernel_dims.clone(),
@@ -974,7 +992,10 @@ impl DdSolver {
             adaptive_s,
             kernel_unknowns: alpha_off,
             interface_entries: dec.n_entries(),
-            nnz_l: nnz_l.iter().sum::<f64>() as usize,
+            nnz_l: total(&op_sizes, 0),
+            interior_nnz_l: 0,
+            nested_dissection_factors: total(&op_sizes, 1),
+            factors: ns,
             search_direction: 0.0,
             setup_s: 0.0,
             factor_s: 0.0,
@@ -1042,6 +1063,19 @@ impl DdSolver {
                     Ok(())
                 });
                 solver.op.comm.agree(r)?;
+                let interiors: Vec<_> = solver.op.subs.iter().filter_map(|st| st.interior.as_ref()).collect();
+                let sizes = solver.op.comm.gather(&[
+                    interiors.iter().map(|ip| ip.nnz_l() as f64).sum::<f64>(),
+                    interiors.iter().filter(|ip| ip.ordering().is_some()).count() as f64,
+                    interiors
+                        .iter()
+                        .filter(|ip| ip.ordering() == Some(OrderingKind::NestedDissection))
+                        .count() as f64,
+                ]);
+                let total = |k: usize| sizes.iter().skip(k).step_by(3).sum::<f64>() as usize;
+                solver.stats.interior_nnz_l = total(0);
+                solver.stats.factors += total(1);
+                solver.stats.nested_dissection_factors += total(2);
                 solver.stats.interior_s = t.elapsed().as_secs_f64();
             }
             // After the interior problems: the deluxe blocks apply them.
@@ -1459,6 +1493,7 @@ pub(crate) fn cg_test_problem_on(scene: &crate::scene::Scene, subdomains: usize)
         preconditioner: Preconditioner::Dirichlet,
         interface_scaling: InterfaceScaling::Deluxe,
         adaptive_threshold: 0.0,
+        ordering: Default::default(),
     };
     (model, dec, opts)
 }

@@ -23,7 +23,7 @@
 //! terminates for the positive definite Schur matrices met here.
 
 use crate::error::{Error, Result};
-use crate::factor::{lower_csc, FactorError, OrderingKind, SparseCholesky, PIVOT_RATIO};
+use crate::factor::{lower_csc, FactorError, OrderingChoice, OrderingKind, SparseCholesky, PIVOT_RATIO};
 use crate::model::Model;
 use faer::linalg::solvers::Solve;
 use faer::sparse::SparseColMat;
@@ -121,8 +121,13 @@ pub struct DirectSolver {
 }
 
 impl DirectSolver {
-    /// Assembles `K` and factors it once.
+    /// Assembles `K` and factors it once ([`OrderingChoice::Auto`]).
     pub fn new(model: &Model) -> Result<DirectSolver> {
+        Self::with_ordering(model, OrderingChoice::Auto)
+    }
+
+    /// [`DirectSolver::new`] in the fill-reducing ordering `ordering` asks for.
+    pub fn with_ordering(model: &Model, ordering: OrderingChoice) -> Result<DirectSolver> {
         let t = std::time::Instant::now();
         let k = assemble(model)?;
         let assembly_s = t.elapsed().as_secs_f64();
@@ -130,7 +135,7 @@ impl DirectSolver {
             return Err(Error::Mechanism("every dof is blocked: nothing to solve".into()));
         }
         let par = whole_structure_par();
-        let chol = SparseCholesky::factor_with(&k, None, BATCH, PIVOT_RATIO, par).map_err(|e| match e {
+        let chol = SparseCholesky::factor_choosing(&k, ordering, BATCH, PIVOT_RATIO, par).map_err(|e| match e {
             FactorError::Pivot { dof, negative: true, .. } if model.effects.geometric_stiffness => Error::Mechanism(format!(
                 "the stiffness with geometric stiffness is not positive definite (negative pivot at node {} component {})",
                 model.dof_owner(dof).0,

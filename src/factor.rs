@@ -79,16 +79,9 @@ impl OrderingKind {
     }
 }
 
-/// Which orderings [`EliminationOrder::best_in_reference`] may return.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum OrderingChoice {
-    /// The smaller predicted `nnz(L)` of AMD and nested dissection
-    /// (nested dissection is only tried when AMD's fill is large, as in
-    /// CHOLMOD's default).
-    Auto,
-    Amd,
-    NestedDissection,
-}
+/// Which orderings [`EliminationOrder::best_in_reference`] may return
+/// (the `[solver] ordering` setting).
+pub use crate::settings::OrderingChoice;
 
 /// Where the factorization time went.
 #[derive(Debug, Clone, Copy, Default)]
@@ -210,11 +203,35 @@ impl SparseCholesky {
         pivot_ratio: f64,
         par: Par,
     ) -> Result<Self, FactorError> {
+        Self::build(lower, order, OrderingChoice::Auto, max_rhs, pivot_ratio, par)
+    }
+
+    /// [`SparseCholesky::factor_with`] in the ordering `choice` asks for,
+    /// chosen here on `lower` as numbered.
+    pub fn factor_choosing(
+        lower: &SparseColMat<usize, f64>,
+        choice: OrderingChoice,
+        max_rhs: usize,
+        pivot_ratio: f64,
+        par: Par,
+    ) -> Result<Self, FactorError> {
+        Self::build(lower, None, choice, max_rhs, pivot_ratio, par)
+    }
+
+    /// Factors in `order`, or without one in the ordering `choice` asks for.
+    fn build(
+        lower: &SparseColMat<usize, f64>,
+        order: Option<&EliminationOrder>,
+        choice: OrderingChoice,
+        max_rhs: usize,
+        pivot_ratio: f64,
+        par: Par,
+    ) -> Result<Self, FactorError> {
         let t = std::time::Instant::now();
         let (symbolic, ordering) = match order {
             Some(o) => (symbolic_cholesky(lower, Some(o))?, o.kind),
             None => {
-                let (o, sym) = EliminationOrder::choose(lower, None, OrderingChoice::Auto)?;
+                let (o, sym) = EliminationOrder::choose(lower, None, choice)?;
                 (sym, o.kind)
             }
         };
@@ -782,11 +799,10 @@ impl EliminationOrder {
     }
 }
 
-/// `nnz(L)` and the ordering a factorization of `lower` would use
-/// ([`OrderingChoice::Auto`], as [`SparseCholesky::factor`]), from the
-/// symbolic analysis alone.
-pub fn analyse(lower: &SparseColMat<usize, f64>) -> Result<(usize, OrderingKind), FactorError> {
-    let (order, symbolic) = EliminationOrder::choose(lower, None, OrderingChoice::Auto)?;
+/// `nnz(L)` and the ordering a factorization of `lower` in the ordering
+/// `choice` asks for would use, from the symbolic analysis alone.
+pub fn analyse(lower: &SparseColMat<usize, f64>, choice: OrderingChoice) -> Result<(usize, OrderingKind), FactorError> {
+    let (order, symbolic) = EliminationOrder::choose(lower, None, choice)?;
     Ok((symbolic.len_val(), order.kind))
 }
 

@@ -19,7 +19,7 @@ use nsdd::comm::Placement;
 use nsdd::error::{Error, Result};
 use nsdd::generate;
 use nsdd::model::Model;
-use nsdd::scene::{InterfaceScaling, Method, Partitioner, Preconditioner, Scene, SearchDirection};
+use nsdd::scene::{InterfaceScaling, Method, OrderingChoice, Partitioner, Preconditioner, Scene, SearchDirection};
 use nsdd::solve::{solve_in, SolveOptions};
 use nsdd::vtk;
 use report::{AccuracyOptions, Event, ScalingOptions};
@@ -161,6 +161,9 @@ struct SolveArgs {
     /// Automatic partitioner: bisection or metis (default: the scene's [solver] partitioner)
     #[arg(long, value_name = "P")]
     partitioner: Option<Partitioner>,
+    /// Fill-reducing ordering of the sparse factorizations: auto (AMD, and nested dissection where AMD fills much), amd or nested_dissection (default: the scene's [solver] ordering)
+    #[arg(long, value_name = "O")]
+    ordering: Option<OrderingChoice>,
     /// Relative tolerance on the convergence indicator
     #[arg(long, value_name = "T", value_parser = parse_positive, allow_hyphen_values = true)]
     tolerance: Option<f64>,
@@ -281,6 +284,9 @@ struct BenchArgs {
     /// Automatic partitioner of the iteration profile: bisection or metis
     #[arg(long, value_name = "P")]
     partitioner: Option<Partitioner>,
+    /// Fill-reducing ordering of every factorization: auto, amd or nested_dissection (default: the scene's [solver] ordering)
+    #[arg(long, value_name = "O")]
+    ordering: Option<OrderingChoice>,
     /// Unilateral cables (nonsmooth) instead of the linear grid
     #[arg(long)]
     nonsmooth: bool,
@@ -574,6 +580,9 @@ fn cmd_solve(a: SolveArgs, placement: Placement) -> Result<i32> {
     if let Some(p) = a.partitioner {
         scene.solver.partitioner = p;
     }
+    if let Some(o) = a.ordering {
+        scene.solver.ordering = o;
+    }
     let mut opts = SolveOptions::from_scene(&scene);
     if let Some(m) = a.method {
         opts.method = m.into();
@@ -842,7 +851,10 @@ fn cmd_scaling(a: ScalingArgs) -> Result<i32> {
 /// `nsdd bench direct SCENE [--json]`: the direct profile of one scene.
 fn bench_direct_scene(a: &BenchArgs) -> Result<i32> {
     let path = a.scene.as_ref().expect("checked by the caller");
-    let scene = Scene::load(path)?;
+    let mut scene = Scene::load(path)?;
+    if let Some(o) = a.ordering {
+        scene.solver.ordering = o;
+    }
     if a.analyse {
         return bench_direct_analysis(a, path, &scene);
     }
@@ -913,13 +925,17 @@ fn bench_direct_analysis(a: &BenchArgs, path: &std::path::Path, scene: &Scene) -
 fn cmd_bench(a: BenchArgs) -> Result<i32> {
     let mut rows: Vec<String> = Vec::new();
     let scene_of = |n: usize| {
-        generate::grid(&generate::GridParams {
+        let mut scene = generate::grid(&generate::GridParams {
             nx: n,
             ny: n,
             unilateral: a.nonsmooth,
             t0: if a.nonsmooth { 0.1 } else { 0.0 },
             ..Default::default()
-        })
+        });
+        if let Some(o) = a.ordering {
+            scene.solver.ordering = o;
+        }
+        scene
     };
     if a.what == "direct" && a.scene.is_some() {
         return bench_direct_scene(&a);
@@ -994,6 +1010,9 @@ fn cmd_bench(a: BenchArgs) -> Result<i32> {
         for (n, mut scene) in scenes {
             if let Some(p) = a.partitioner {
                 scene.solver.partitioner = p;
+            }
+            if let Some(o) = a.ordering {
+                scene.solver.ordering = o;
             }
             // The direct solver's set-up on the same structure (assembly,
             // ordering, factorization), for the set-up ratio.

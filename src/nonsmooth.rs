@@ -54,7 +54,7 @@ use crate::outcome::Status;
 use crate::partition::Partition;
 use crate::result::HistoryEntry;
 use crate::scaling::InterfaceScaling;
-use crate::scene::{Preconditioner, SearchDirection};
+use crate::scene::{OrderingChoice, Preconditioner, SearchDirection};
 use std::collections::{HashMap, HashSet};
 
 /// Stiffness fraction kept by slack cables in a step whose slack set alone
@@ -172,6 +172,8 @@ pub struct NonsmoothOptions {
     pub interface_scaling: InterfaceScaling,
     /// See [`crate::settings::SolverSettings::adaptive_threshold`].
     pub adaptive_threshold: f64,
+    /// Fill-reducing ordering of the subdomain and interior factors.
+    pub ordering: OrderingChoice,
 }
 
 /// One solved state of the nonsmooth CG.
@@ -543,6 +545,7 @@ impl NonsmoothCg {
             tolerance: self.opts.tolerance,
             max_iterations: self.opts.max_iterations,
             search_direction: SearchDirection::Auto,
+            ordering: self.opts.ordering,
         };
         let (own, pool) = (&self.dec, &mut self.pool);
         let unrepaired_first = self.unrepaired_first && !self.plain_unusable;

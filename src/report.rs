@@ -119,6 +119,17 @@ pub fn summary(scene: &Scene, r: &SolveResult) -> String {
             let _ = writeln!(s, "            adaptive macro columns {:.4} s", p.adaptive);
         }
     }
+    if let Some(f) = &r.factors {
+        let _ = writeln!(
+            s,
+            "factors     nnz(L) {:.3e} in {} factor{} (nested dissection {}, amd {})",
+            f.nnz_l as f64,
+            f.nested_dissection + f.amd,
+            if f.nested_dissection + f.amd == 1 { "" } else { "s" },
+            f.nested_dissection,
+            f.amd
+        );
+    }
     match max_displacement(&r.displacements) {
         Some((n, m)) => {
             let _ = writeln!(s, "max |u|     {m:.6e} (node {n})");
@@ -268,7 +279,7 @@ pub fn partition_report(scene: &Scene, subdomains: usize) -> Result<PartitionRep
         .iter()
         .enumerate()
         .map(|(id, sd)| {
-            let (kernel_dim, error) = match SubdomainOperator::new(id, &model, sd, 1) {
+            let (kernel_dim, error) = match SubdomainOperator::new(id, &model, sd, 1, scene.solver.ordering) {
                 Ok(op) => (Some(op.kernel_dim()), None),
                 Err(e) => (None, Some(e.to_string())),
             };
@@ -505,6 +516,7 @@ fn method_options(
         interface_scaling: Default::default(),
         adaptive_threshold: 0.0,
         partitioner,
+        ordering: Default::default(),
     }
 }
 

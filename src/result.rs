@@ -105,6 +105,23 @@ pub struct SolveResult {
     /// Subdomain id of each element (empty for the direct method).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub element_subdomain: Vec<usize>,
+    /// Sizes and orderings of the sparse factors (nsdd addition; absent
+    /// for nonsmooth cg, whose set-ups repeat per cable set).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub factors: Option<FactorSizes>,
+}
+
+/// The sparse Cholesky factors of a solve: the whole structure's (direct),
+/// or every subdomain's and every Dirichlet interior's (DD), with the
+/// fill-reducing ordering each got (`[solver] ordering`).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct FactorSizes {
+    /// Values stored in `L`, summed over the factors.
+    pub nnz_l: usize,
+    /// Factors ordered by nested dissection...
+    pub nested_dissection: usize,
+    /// ...and by AMD.
+    pub amd: usize,
 }
 
 impl SolveResult {

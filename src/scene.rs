@@ -77,7 +77,8 @@ impl Effects {
 }
 
 pub use crate::settings::{
-    InterfaceScaling, Method, MethodConfig, Partitioner, Preconditioner, SearchDirection, SolverSettings,
+    InterfaceScaling, Method, MethodConfig, OrderingChoice, Partitioner, Preconditioner, SearchDirection,
+    SolverSettings,
 };
 
 /// `[nodes]`: columnar coordinates.

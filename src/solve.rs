@@ -33,11 +33,12 @@ use crate::dd::{DdOptions, DdSolver};
 use crate::decomposition::Decomposition;
 use crate::direct::DirectSolver;
 use crate::error::Result;
+use crate::factor::OrderingKind;
 use crate::model::Model;
 use crate::nonsmooth::{NonsmoothCg, NonsmoothOptions};
 use crate::outcome::{Outcome, Status};
 use crate::partition::{resolve_subdomains, Partition};
-use crate::result::{CaseResult, HistoryEntry, SetupPhases, SolveResult, Timings};
+use crate::result::{CaseResult, FactorSizes, HistoryEntry, SetupPhases, SolveResult, Timings};
 use crate::scene::{Method, Partitioner, Scene};
 pub use crate::settings::SolverSettings;
 use std::time::Instant;
@@ -145,7 +146,7 @@ pub fn prepare(model: &Model, scene: &Scene, opts: &SolveOptions) -> Result<Prep
 /// method runs whole on every rank).
 pub fn prepare_in(model: &Model, scene: &Scene, opts: &SolveOptions, placement: Placement) -> Result<Prepared> {
     Ok(match opts.method {
-        Method::Direct => Prepared::Direct(Box::new(DirectSolver::new(model)?)),
+        Method::Direct => Prepared::Direct(Box::new(DirectSolver::with_ordering(model, opts.ordering)?)),
         Method::Cg if !model.cables.is_empty() => {
             opts.validate()?;
             let dec = decompose_with(model, scene, opts.subdomains, opts.partitioner)?;
@@ -158,6 +159,7 @@ pub fn prepare_in(model: &Model, scene: &Scene, opts: &SolveOptions, placement: 
                     preconditioner: opts.preconditioner,
                     interface_scaling: opts.interface_scaling,
                     adaptive_threshold: opts.adaptive_threshold,
+                    ordering: opts.ordering,
                 },
                 placement,
             )?))
@@ -439,6 +441,26 @@ pub fn solve_in(
             ));
         }
     }
+    let factors = match &prepared {
+        Prepared::Direct(d) => {
+            let st = d.stats();
+            let nd = st.ordering == Some(OrderingKind::NestedDissection);
+            Some(FactorSizes {
+                nnz_l: st.nnz_l,
+                nested_dissection: nd as usize,
+                amd: (!nd) as usize,
+            })
+        }
+        Prepared::Dd(dd, _) => {
+            let st = dd.stats();
+            Some(FactorSizes {
+                nnz_l: st.nnz_l + st.interior_nnz_l,
+                nested_dissection: st.nested_dissection_factors,
+                amd: st.factors - st.nested_dissection_factors,
+            })
+        }
+        Prepared::NonsmoothCg(_) => None,
+    };
     let setup_phases = match &prepared {
         Prepared::Dd(dd, _) => {
             let st = dd.stats();
@@ -454,6 +476,7 @@ pub fn solve_in(
         _ => None,
     };
     Ok(SolveResult {
+        factors,
         scene: model.name.clone(),
         method: opts.method.name().to_string(),
         effects: model.effects.names().into_iter().map(String::from).collect(),

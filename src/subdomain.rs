@@ -103,8 +103,15 @@ impl std::fmt::Debug for SubdomainOperator {
 }
 
 impl SubdomainOperator {
-    /// Assembles and factors `K_E`; `max_rhs` sizes the batched-solve scratch.
-    pub fn new(id: usize, model: &Model, sd: &SubdomainDofs, max_rhs: usize) -> Result<SubdomainOperator> {
+    /// Assembles and factors `K_E` in the fill-reducing ordering `ordering`
+    /// asks for; `max_rhs` sizes the batched-solve scratch.
+    pub fn new(
+        id: usize,
+        model: &Model,
+        sd: &SubdomainDofs,
+        max_rhs: usize,
+        ordering: OrderingChoice,
+    ) -> Result<SubdomainOperator> {
         let n = sd.dofs.len();
         let trip = model.stiffness_triplets(&sd.elements, |d| sd.local(d));
         let stiffness = lower_csc(n, &trip).map_err(|e| Error::Numerical(format!("subdomain {id}: {e:?}")))?;
@@ -124,6 +131,7 @@ impl SubdomainOperator {
             Some(&sd.reference_rank()),
             &name,
             sd.translates_freely(model),
+            ordering,
         )
     }
 
@@ -141,11 +149,21 @@ impl SubdomainOperator {
         reference: Option<&[usize]>,
         name: &dyn Fn(usize) -> String,
     ) -> Result<SubdomainOperator> {
-        Self::from_matrix_known(id, stiffness, max_rhs, kernel, reference, name, false)
+        Self::from_matrix_known(
+            id,
+            stiffness,
+            max_rhs,
+            kernel,
+            reference,
+            name,
+            false,
+            OrderingChoice::Auto,
+        )
     }
 
     /// [`SubdomainOperator::from_matrix`]; `singular`: the caller knows
     /// the matrix is singular (its kernel is still computed here).
+    #[allow(clippy::too_many_arguments)]
     fn from_matrix_known(
         id: usize,
         stiffness: SparseColMat<usize, f64>,
@@ -154,6 +172,7 @@ impl SubdomainOperator {
         reference: Option<&[usize]>,
         name: &dyn Fn(usize) -> String,
         singular: bool,
+        ordering: OrderingChoice,
     ) -> Result<SubdomainOperator> {
         let n = stiffness.nrows();
         let identity: Vec<usize>;
@@ -164,7 +183,7 @@ impl SubdomainOperator {
                 &identity
             }
         };
-        let order = EliminationOrder::for_set_up(&stiffness, Some(rank), OrderingChoice::Auto)
+        let order = EliminationOrder::for_set_up(&stiffness, Some(rank), ordering)
             .map_err(|e| Error::Numerical(format!("subdomain {id}: {e:?}")))?;
         if let Some(r) = kernel {
             if r.nrows() != n {
@@ -491,6 +510,11 @@ impl SubdomainOperator {
     /// Stored entries of the factor.
     pub fn nnz_l(&self) -> usize {
         self.chol.nnz_l()
+    }
+
+    /// The fill-reducing ordering of the factor.
+    pub fn ordering(&self) -> OrderingKind {
+        self.chol.ordering()
     }
 
     /// `r ← K⁺ r` (generalised inverse; exact when `r ⊥ R_E`). No allocation.
@@ -946,6 +970,12 @@ impl InteriorProblem {
             }
         }
         true
+    }
+
+    /// The fill-reducing ordering of the interior factor (`None`: no
+    /// interior dof, no factor).
+    pub fn ordering(&self) -> Option<OrderingKind> {
+        self.chol.as_ref().map(|c| c.ordering())
     }
 
     /// Stored entries of the interior factor.

@@ -1039,6 +1039,7 @@ fn dd_options(scene_file: &str) -> DdOptions {
         preconditioner: Default::default(),
         interface_scaling: Default::default(),
         adaptive_threshold: 0.0,
+        ordering: Default::default(),
     }
 }
 

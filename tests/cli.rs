@@ -1007,3 +1007,52 @@ fn a_closed_pipe_ends_quietly() {
     assert_eq!(out.status.signal(), Some(libc::SIGPIPE), "{:?}", out.status);
     assert!(!text(&out.stderr).contains("panicked"), "{}", text(&out.stderr));
 }
+
+/// `--ordering` picks the factorizations' fill-reducing ordering; the
+/// summary and the result file say which ordering each factor got, and a
+/// wrong value is refused with the valid ones.
+#[test]
+fn ordering_flag_reaches_the_factors_and_the_report() {
+    let d = tmp("ordering");
+    let scene = d.join("tower.toml");
+    let o = nsdd(&[
+        "gen",
+        "tower",
+        "nx=10",
+        "ny=10",
+        "nz=10",
+        "unilateral=false",
+        "--out",
+        s(&scene),
+    ]);
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    let mut nnz = Vec::new();
+    for (flag, want) in [
+        ("amd", "(nested dissection 0, amd 8)"),
+        ("nested_dissection", "(nested dissection 8, amd 0)"),
+    ] {
+        let out = d.join(format!("{flag}.json"));
+        let o = nsdd(&[
+            "solve",
+            s(&scene),
+            "--method",
+            "cg",
+            "--subdomains",
+            "4",
+            "--ordering",
+            flag,
+            "--out",
+            s(&out),
+        ]);
+        assert!(o.status.success(), "{}", text(&o.stderr));
+        let stdout = text(&o.stdout);
+        assert!(stdout.contains(want), "{stdout}");
+        let r: Value = serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+        nnz.push(r["factors"]["nnz_l"].as_u64().unwrap());
+    }
+    assert!(nnz[1] < nnz[0], "nested dissection fills less on a 3D tower: {nnz:?}");
+    let o = nsdd(&["solve", s(&scene), "--ordering", "metis"]);
+    assert!(!o.status.success());
+    let err = text(&o.stderr);
+    assert!(err.contains("nested_dissection") && err.contains("metis"), "{err}");
+}

@@ -132,6 +132,7 @@ fn monolevel_solves_singular_subdomains_with_the_natural_coarse_space() {
                 preconditioner: Default::default(),
                 interface_scaling: Default::default(),
                 adaptive_threshold: 0.0,
+                ordering: Default::default(),
             },
         )
         .unwrap()
@@ -168,6 +169,7 @@ fn several_load_cases_reuse_one_setup() {
             preconditioner: Default::default(),
             interface_scaling: Default::default(),
             adaptive_threshold: 0.0,
+            ordering: Default::default(),
         },
     )
     .unwrap();
@@ -414,6 +416,7 @@ fn interface_cg_refuses_unilateral_cables() {
         preconditioner: Preconditioner::Dirichlet,
         interface_scaling: Default::default(),
         adaptive_threshold: 0.0,
+        ordering: Default::default(),
     };
     match DdSolver::new(&model, &dec, o) {
         Err(Error::MethodNotApplicable(m)) => assert!(m.contains("unilateral") && m.contains("multilevel"), "{m}"),
@@ -446,6 +449,7 @@ fn large_plate_coarse_problem_stays_exact() {
             preconditioner: Default::default(),
             interface_scaling: Default::default(),
             adaptive_threshold: 0.0,
+            ordering: Default::default(),
         },
     )
     .unwrap();

@@ -39,6 +39,7 @@ fn multilevel(model: &Model, dec: &Decomposition) -> DdSolver {
             preconditioner: Default::default(),
             interface_scaling: Default::default(),
             adaptive_threshold: 0.0,
+            ordering: Default::default(),
         },
     )
     .unwrap()
@@ -745,7 +746,7 @@ fn subdomain_factorization_does_not_depend_on_the_layout() {
     let mut singular = 0;
     for (s, sd) in dec.subdomains.iter().enumerate() {
         let n = sd.dofs.len();
-        let laid_out = SubdomainOperator::new(s, &model, sd, 4).unwrap();
+        let laid_out = SubdomainOperator::new(s, &model, sd, 4, Default::default()).unwrap();
         // The same subdomain in increasing global order.
         let mut sorted = sd.dofs.clone();
         sorted.sort_unstable();
@@ -815,7 +816,7 @@ fn subdomains_free_to_translate_are_floating() {
     let dec = Decomposition::new(&model, Partition::bisection(&model, 4).unwrap());
     let mut floating = 0;
     for (s, sd) in dec.subdomains.iter().enumerate() {
-        let op = SubdomainOperator::new(s, &model, sd, 4).unwrap();
+        let op = SubdomainOperator::new(s, &model, sd, 4, Default::default()).unwrap();
         let generic =
             SubdomainOperator::from_matrix(s, op.stiffness.clone(), 4, None, Some(&sd.reference_rank()), &|l| {
                 format!("dof {l}")

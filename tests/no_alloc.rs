@@ -64,6 +64,7 @@ fn extra_iterations_allocate_nothing() {
             preconditioner,
             interface_scaling: Default::default(),
             adaptive_threshold: 0.0,
+            ordering: Default::default(),
         };
         let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();
         pool.install(|| {
@@ -118,6 +119,7 @@ fn nonsmooth_cg_iterations_allocate_nothing() {
         preconditioner: Preconditioner::Dirichlet,
         interface_scaling: Default::default(),
         adaptive_threshold: 0.0,
+        ordering: Default::default(),
     };
     let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();
     pool.install(|| {

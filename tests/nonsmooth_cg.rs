@@ -341,6 +341,7 @@ fn unchanged_subdomains_are_not_refactored() {
             preconditioner: Default::default(),
             interface_scaling: Default::default(),
             adaptive_threshold: 0.0,
+            ordering: Default::default(),
         },
     )
     .unwrap();
@@ -528,6 +529,7 @@ fn a_cable_set_that_does_not_settle_is_reported() {
         preconditioner: Default::default(),
         interface_scaling: Default::default(),
         adaptive_threshold: 0.0,
+        ordering: Default::default(),
     };
     let f = model.load_cases[0].clone();
     let mut cg = NonsmoothCg::new(&model, decompose(&model, &scene, 4).unwrap(), options()).unwrap();

@@ -741,6 +741,7 @@ fn kernel_dims(scene: &Scene, subdomains: usize) -> Vec<usize> {
             preconditioner: Default::default(),
             interface_scaling: Default::default(),
             adaptive_threshold: 0.0,
+            ordering: Default::default(),
         },
     )
     .unwrap();
@@ -830,6 +831,7 @@ fn resolving_reuses_factorizations_bit_identically() {
         preconditioner: Default::default(),
         interface_scaling: Default::default(),
         adaptive_threshold: 0.0,
+        ordering: Default::default(),
     };
     let mut dd = DdSolver::new(&model, &dec, o.clone()).unwrap();
     let f = model.load_cases[0].clone();
@@ -1333,6 +1335,7 @@ fn solve_options_given_in_rust_are_checked_like_the_scene() {
             interface_scaling: Default::default(),
             adaptive_threshold: 0.0,
             partitioner: Default::default(),
+            ordering: Default::default(),
         };
         match solve(&scene, &o) {
             Err(Error::InvalidInput { field, .. }) => assert_eq!(field, name),

@@ -144,6 +144,7 @@ fn builder_scene() -> Scene {
         interface_scaling: nsdd::scene::InterfaceScaling::Contrast,
         adaptive_threshold: 12.0,
         partitioner: nsdd::scene::Partitioner::Metis,
+        ordering: Default::default(),
     });
     b.build_validated().unwrap()
 }

@@ -498,6 +498,32 @@ pub unsafe extern "C" fn nsdd_options_set_partitioner(options: *mut NsddOptions,
     })
 }
 
+/// Sets the fill-reducing ordering of the sparse factorizations (the
+/// whole structure's, each subdomain's and each Dirichlet interior's),
+/// overriding the scene's `[solver] ordering`: 0 auto (AMD, and nested
+/// dissection where AMD fills more than 5 nnz(K); the smaller fill wins),
+/// 1 AMD, 2 nested dissection; any other value is INVALID_ARGUMENT.
+///
+/// # Safety
+/// `options` must be a live options handle.
+#[unsafe(no_mangle)]
+pub unsafe extern "C" fn nsdd_options_set_ordering(options: *mut NsddOptions, ordering: u32) -> NsddStatus {
+    ffi_guard(|| {
+        let o = unsafe { handle_mut(options, "options")? };
+        o.opts.ordering = match ordering {
+            0 => crate::scene::OrderingChoice::Auto,
+            1 => crate::scene::OrderingChoice::Amd,
+            2 => crate::scene::OrderingChoice::NestedDissection,
+            _ => {
+                return Err(invalid(format!(
+                    "ordering = {ordering}: expected 0 (auto), 1 (amd) or 2 (nested_dissection)"
+                )))
+            }
+        };
+        Ok(())
+    })
+}
+
 /// Sets the number of subdomains of the automatic partition; 0 means
 /// automatic, as [`nsdd_options_set_subdomains_auto`] (ignored by the direct
 /// method and at the algebraic level).

@@ -30,6 +30,7 @@ pub fn opts(method: Method, subdomains: usize, tol: f64) -> SolveOptions {
         interface_scaling: Default::default(),
         adaptive_threshold: 0.0,
         partitioner: Default::default(),
+        ordering: Default::default(),
     }
 }
 
