@@ -546,7 +546,7 @@ enum NsddStatus nsdd_options_set_partitioner(struct NsddOptions *options, uint32
  * Sets the fill-reducing ordering of the sparse factorizations (the
  * whole structure's, each subdomain's and each Dirichlet interior's),
  * overriding the scene's `[solver] ordering`: 0 auto (AMD, and nested
- * dissection where AMD fills more than 5 nnz(K); the smaller fill wins),
+ * dissection where AMD fills 8 nnz(K) or more and it saves 5 % of that),
  * 1 AMD, 2 nested dissection; any other value is INVALID_ARGUMENT.
  *
  * # Safety

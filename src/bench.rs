@@ -86,8 +86,8 @@ pub struct DirectAnalysis {
     pub nnz_k: usize,
     pub nnz_l: usize,
     /// Fill-reducing ordering the direct solver would use (`"amd"` or
-    /// `"nested_dissection"`: with the scene's `ordering = "auto"`, the
-    /// smaller `nnz(L)`, as in [`direct_profile`]).
+    /// `"nested_dissection"`: with the scene's `ordering = "auto"`, as
+    /// [`crate::factor::EliminationOrder::best_in_reference`] decides).
     pub ordering: String,
     /// Assembly of `K`.
     pub assembly_s: f64,

@@ -181,7 +181,7 @@ impl SparseCholesky {
     }
 
     /// [`SparseCholesky::factor_checked`] with a precomputed elimination
-    /// order (`None`: the smaller fill of AMD and nested dissection on
+    /// order (`None`: AMD or nested dissection, as [`OrderingChoice::Auto`] decides, on
     /// `lower` as numbered, see [`OrderingChoice::Auto`]).
     pub fn factor_ordered(
         lower: &SparseColMat<usize, f64>,
@@ -611,10 +611,20 @@ struct Analysis {
 /// fill is never large in absolute terms and METIS costs more than it saves.
 pub const ND_MIN_ROWS: usize = 200;
 
-/// CHOLMOD's default (`cholmod_analyze`): nested dissection is tried only
-/// when AMD gives `nnz(L) ≥ 5 nnz(A)` or more than 500 flops per entry of
-/// `L`; here the fill test alone (faer's symbolic gives `nnz(L)` directly).
-pub const ND_FILL_RATIO: f64 = 5.0;
+/// Nested dissection is tried only when AMD gives `nnz(L) ≥ 8 nnz(A)`.
+/// CHOLMOD's default (`cholmod_analyze`) tries it from 5 nnz(A) (or 500
+/// flops per entry of `L`); on the subdomains of 2D grids (AMD's fill
+/// 5–7 nnz(A) with 1.6k–6.6k rows) METIS then lost or won by 1–4 %, and
+/// its trial cost more than that saved (the 130² grid with 16 subdomains:
+/// cg 2.06 → 1.77 s, its nonsmooth twin 24.1 → 21.4 s, BENCHMARKS.md),
+/// while the 3D subdomains it pays on fill 8–15 nnz(A) with AMD.
+pub const ND_FILL_RATIO: f64 = 8.0;
+
+/// Nested dissection is chosen only when its `nnz(L)` is at most this
+/// fraction of AMD's: a smaller gain does not pay for what the choice
+/// costs beyond the factor itself (the Dirichlet interior takes its
+/// subdomain's kind, so METIS runs again there).
+pub const ND_MARGIN: f64 = 0.95;
 
 impl EliminationOrder {
     /// AMD on the pattern of `lower`, with the rows and columns renumbered
@@ -631,8 +641,9 @@ impl EliminationOrder {
     }
 
     /// The ordering `choice` asks for in the reference numbering `rank`;
-    /// with [`OrderingChoice::Auto`], the one of AMD and nested dissection
-    /// with the smaller `nnz(L)` by faer's symbolic analysis (ties: AMD).
+    /// with [`OrderingChoice::Auto`], AMD unless nested dissection, tried
+    /// when AMD fills [`ND_FILL_RATIO`] or more, saves at least
+    /// 1 − [`ND_MARGIN`] of its `nnz(L)` (faer's symbolic analysis).
     pub fn best_in_reference(
         lower: &SparseColMat<usize, f64>,
         rank: &[usize],
@@ -689,7 +700,7 @@ impl EliminationOrder {
         }
         let nd = with(Self::nd(lower, rank)?);
         let nd_sym = symbolic_cholesky(lower, Some(&nd))?;
-        if nd_sym.len_val() < amd_sym.len_val() {
+        if (nd_sym.len_val() as f64) <= ND_MARGIN * amd_sym.len_val() as f64 {
             Ok(nd.with_analysis(lower, nd_sym))
         } else {
             Ok(amd.with_analysis(lower, amd_sym))

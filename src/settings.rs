@@ -184,10 +184,11 @@ pub struct SolverSettings {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, Hash)]
 #[serde(rename_all = "snake_case")]
 pub enum OrderingChoice {
-    /// Per matrix, as CHOLMOD's default: AMD, and nested dissection too
-    /// when AMD fills more than 5 nnz(A) (and the matrix has 200 rows or
-    /// more); the smaller `nnz(L)` of the two wins. A Dirichlet interior
-    /// takes the kind its subdomain got, without the trial.
+    /// Per matrix, as CHOLMOD's default but stricter: AMD, and nested
+    /// dissection too when AMD fills 8 nnz(A) or more (and the matrix has
+    /// 200 rows or more); nested dissection wins when it saves at least 5 %
+    /// of AMD's `nnz(L)`. A Dirichlet interior takes the kind its subdomain
+    /// got, without the trial.
     #[default]
     Auto,
     /// Approximate minimum degree everywhere.
