@@ -146,6 +146,41 @@ typedef enum NsddMethod {
 } NsddMethod;
 
 /**
+ * Fill-reducing ordering of the sparse factorizations (values for
+ * `nsdd_options_set_ordering`).
+ */
+typedef enum NsddOrdering {
+    /**
+     * Per matrix: AMD, and nested dissection where AMD fills 8 nnz(K) or
+     * more and nested dissection saves 5 % of that (default).
+     */
+    NSDD_ORDERING_AUTO = 0,
+    /**
+     * Approximate minimum degree everywhere.
+     */
+    NSDD_ORDERING_AMD = 1,
+    /**
+     * METIS nested dissection everywhere (interiors under 200 rows keep
+     * AMD): no AMD trial, for structures known to be 3D.
+     */
+    NSDD_ORDERING_NESTED_DISSECTION = 2,
+} NsddOrdering;
+
+/**
+ * Automatic partitioner (values for `nsdd_options_set_partitioner`).
+ */
+typedef enum NsddPartitioner {
+    /**
+     * Recursive coordinate bisection of element midpoints (default).
+     */
+    NSDD_PARTITIONER_BISECTION = 0,
+    /**
+     * METIS k-way partition of the node graph.
+     */
+    NSDD_PARTITIONER_METIS = 1,
+} NsddPartitioner;
+
+/**
  * Preconditioner of the interface CG (values for
  * `nsdd_options_set_preconditioner`).
  */
@@ -533,7 +568,8 @@ enum NsddStatus nsdd_options_set_adaptive_threshold(struct NsddOptions *options,
 
 /**
  * Sets the automatic partitioner, overriding the scene's `[solver]
- * partitioner`: 0 coordinate bisection, 1 METIS k-way; any other value is
+ * partitioner`: a [`NsddPartitioner`] value, 0 coordinate bisection, 1
+ * METIS k-way; any other value is
  * INVALID_ARGUMENT. Ignored by the direct method and when the scene's
  * elements carry their subdomain.
  *
@@ -545,9 +581,10 @@ enum NsddStatus nsdd_options_set_partitioner(struct NsddOptions *options, uint32
 /**
  * Sets the fill-reducing ordering of the sparse factorizations (the
  * whole structure's, each subdomain's and each Dirichlet interior's),
- * overriding the scene's `[solver] ordering`: 0 auto (AMD, and nested
- * dissection where AMD fills 8 nnz(K) or more and it saves 5 % of that),
- * 1 AMD, 2 nested dissection; any other value is INVALID_ARGUMENT.
+ * overriding the scene's `[solver] ordering`: a [`NsddOrdering`] value,
+ * 0 auto (AMD, and nested dissection where AMD fills 8 nnz(K) or more and
+ * it saves 5 % of that), 1 AMD, 2 nested dissection; any other value is
+ * INVALID_ARGUMENT.
  *
  * # Safety
  * `options` must be a live options handle.

@@ -26,7 +26,10 @@ fn c_partitioner_option_matches_the_rust_api_bit_for_bit() {
         assert_eq!(nsdd_options_set_method(o, NsddMethod::Cg as u32), NsddStatus::Ok);
         assert_eq!(nsdd_options_set_subdomains(o, 8), NsddStatus::Ok);
         let mut results = Vec::new();
-        for (p, code) in [(Partitioner::Bisection, 0), (Partitioner::Metis, 1)] {
+        for (p, code) in [
+            (Partitioner::Bisection, NsddPartitioner::Bisection as u32),
+            (Partitioner::Metis, NsddPartitioner::Metis as u32),
+        ] {
             // The settings carry the partitioner (the scene's is copied
             // into them by from_scene): set both, as a Rust caller would.
             scene.solver.partitioner = p;
@@ -86,9 +89,9 @@ fn c_ordering_option_matches_the_rust_api_bit_for_bit() {
         assert_eq!(nsdd_options_set_method(o, NsddMethod::Cg as u32), NsddStatus::Ok);
         assert_eq!(nsdd_options_set_subdomains(o, 4), NsddStatus::Ok);
         for (choice, code) in [
-            (OrderingChoice::Auto, 0),
-            (OrderingChoice::Amd, 1),
-            (OrderingChoice::NestedDissection, 2),
+            (OrderingChoice::Auto, NsddOrdering::Auto as u32),
+            (OrderingChoice::Amd, NsddOrdering::Amd as u32),
+            (OrderingChoice::NestedDissection, NsddOrdering::NestedDissection as u32),
         ] {
             opts.ordering = choice;
             let want = solve(&scene, &opts).unwrap();

@@ -94,6 +94,31 @@ pub enum NsddPreconditioner {
     Lumped = 1,
 }
 
+/// Automatic partitioner (values for `nsdd_options_set_partitioner`).
+#[repr(C)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum NsddPartitioner {
+    /// Recursive coordinate bisection of element midpoints (default).
+    Bisection = 0,
+    /// METIS k-way partition of the node graph.
+    Metis = 1,
+}
+
+/// Fill-reducing ordering of the sparse factorizations (values for
+/// `nsdd_options_set_ordering`).
+#[repr(C)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum NsddOrdering {
+    /// Per matrix: AMD, and nested dissection where AMD fills 8 nnz(K) or
+    /// more and nested dissection saves 5 % of that (default).
+    Auto = 0,
+    /// Approximate minimum degree everywhere.
+    Amd = 1,
+    /// METIS nested dissection everywhere (interiors under 200 rows keep
+    /// AMD): no AMD trial, for structures known to be 3D.
+    NestedDissection = 2,
+}
+
 /// Weights of the interface CG's preconditioner across interfaces (values
 /// for `nsdd_options_set_interface_scaling`).
 #[repr(C)]

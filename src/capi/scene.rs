@@ -475,7 +475,8 @@ pub unsafe extern "C" fn nsdd_options_set_adaptive_threshold(options: *mut NsddO
 }
 
 /// Sets the automatic partitioner, overriding the scene's `[solver]
-/// partitioner`: 0 coordinate bisection, 1 METIS k-way; any other value is
+/// partitioner`: a [`NsddPartitioner`] value, 0 coordinate bisection, 1
+/// METIS k-way; any other value is
 /// INVALID_ARGUMENT. Ignored by the direct method and when the scene's
 /// elements carry their subdomain.
 ///
@@ -486,8 +487,8 @@ pub unsafe extern "C" fn nsdd_options_set_partitioner(options: *mut NsddOptions,
     ffi_guard(|| {
         let o = unsafe { handle_mut(options, "options")? };
         o.opts.partitioner = match partitioner {
-            0 => crate::scene::Partitioner::Bisection,
-            1 => crate::scene::Partitioner::Metis,
+            p if p == NsddPartitioner::Bisection as u32 => crate::scene::Partitioner::Bisection,
+            p if p == NsddPartitioner::Metis as u32 => crate::scene::Partitioner::Metis,
             _ => {
                 return Err(invalid(format!(
                     "partitioner = {partitioner}: expected 0 (bisection) or 1 (metis)"
@@ -500,9 +501,10 @@ pub unsafe extern "C" fn nsdd_options_set_partitioner(options: *mut NsddOptions,
 
 /// Sets the fill-reducing ordering of the sparse factorizations (the
 /// whole structure's, each subdomain's and each Dirichlet interior's),
-/// overriding the scene's `[solver] ordering`: 0 auto (AMD, and nested
-/// dissection where AMD fills 8 nnz(K) or more and it saves 5 % of that),
-/// 1 AMD, 2 nested dissection; any other value is INVALID_ARGUMENT.
+/// overriding the scene's `[solver] ordering`: a [`NsddOrdering`] value,
+/// 0 auto (AMD, and nested dissection where AMD fills 8 nnz(K) or more and
+/// it saves 5 % of that), 1 AMD, 2 nested dissection; any other value is
+/// INVALID_ARGUMENT.
 ///
 /// # Safety
 /// `options` must be a live options handle.
@@ -511,9 +513,9 @@ pub unsafe extern "C" fn nsdd_options_set_ordering(options: *mut NsddOptions, or
     ffi_guard(|| {
         let o = unsafe { handle_mut(options, "options")? };
         o.opts.ordering = match ordering {
-            0 => crate::scene::OrderingChoice::Auto,
-            1 => crate::scene::OrderingChoice::Amd,
-            2 => crate::scene::OrderingChoice::NestedDissection,
+            o if o == NsddOrdering::Auto as u32 => crate::scene::OrderingChoice::Auto,
+            o if o == NsddOrdering::Amd as u32 => crate::scene::OrderingChoice::Amd,
+            o if o == NsddOrdering::NestedDissection as u32 => crate::scene::OrderingChoice::NestedDissection,
             _ => {
                 return Err(invalid(format!(
                     "ordering = {ordering}: expected 0 (auto), 1 (amd) or 2 (nested_dissection)"
