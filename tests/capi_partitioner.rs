@@ -7,6 +7,35 @@ use nsdd::solve::{solve, SolveOptions};
 use std::ffi::CString;
 use std::ptr::null_mut;
 
+/// Solves `s` with `o` through the C ABI and checks that the displacements
+/// have the bits of the Rust API's `want`; returns the result handle (to be
+/// destroyed) and the displacements.
+///
+/// # Safety
+/// `s` and `o` must be live handles.
+unsafe fn solve_as_rust_does(
+    s: *const NsddScene,
+    o: *const NsddOptions,
+    want: &nsdd::result::SolveResult,
+    what: &str,
+) -> (*mut NsddResult, Vec<f64>) {
+    unsafe {
+        let mut r = null_mut();
+        assert_eq!(nsdd_solve(s, o, &mut r), NsddStatus::Ok);
+        let mut nn = 0;
+        assert_eq!(nsdd_result_num_nodes(r, &mut nn), NsddStatus::Ok);
+        let mut u = vec![0.0; 3 * nn];
+        assert_eq!(nsdd_result_displacements(r, u.as_mut_ptr(), u.len()), NsddStatus::Ok);
+        let wu: Vec<f64> = want.displacements.iter().flatten().copied().collect();
+        assert_eq!(
+            u.iter().map(|x| x.to_bits()).collect::<Vec<_>>(),
+            wu.iter().map(|x| x.to_bits()).collect::<Vec<_>>(),
+            "{what}"
+        );
+        (r, u)
+    }
+}
+
 #[test]
 fn c_partitioner_option_matches_the_rust_api_bit_for_bit() {
     let mut scene = nsdd::generate::grid(&nsdd::generate::GridParams {
@@ -36,18 +65,7 @@ fn c_partitioner_option_matches_the_rust_api_bit_for_bit() {
             opts.partitioner = p;
             let want = solve(&scene, &opts).unwrap();
             assert_eq!(nsdd_options_set_partitioner(o, code), NsddStatus::Ok);
-            let mut r = null_mut();
-            assert_eq!(nsdd_solve(s, o, &mut r), NsddStatus::Ok);
-            let mut nn = 0;
-            assert_eq!(nsdd_result_num_nodes(r, &mut nn), NsddStatus::Ok);
-            let mut u = vec![0.0; 3 * nn];
-            assert_eq!(nsdd_result_displacements(r, u.as_mut_ptr(), u.len()), NsddStatus::Ok);
-            let wu: Vec<f64> = want.displacements.iter().flatten().copied().collect();
-            assert_eq!(
-                u.iter().map(|x| x.to_bits()).collect::<Vec<_>>(),
-                wu.iter().map(|x| x.to_bits()).collect::<Vec<_>>(),
-                "{p:?}"
-            );
+            let (r, u) = solve_as_rust_does(s, o, &want, &format!("{p:?}"));
             let mut it = 0;
             assert_eq!(nsdd_result_iterations(r, &mut it), NsddStatus::Ok);
             assert_eq!(it, want.iterations);
@@ -96,18 +114,7 @@ fn c_ordering_option_matches_the_rust_api_bit_for_bit() {
             opts.ordering = choice;
             let want = solve(&scene, &opts).unwrap();
             assert_eq!(nsdd_options_set_ordering(o, code), NsddStatus::Ok);
-            let mut r = null_mut();
-            assert_eq!(nsdd_solve(s, o, &mut r), NsddStatus::Ok);
-            let mut nn = 0;
-            assert_eq!(nsdd_result_num_nodes(r, &mut nn), NsddStatus::Ok);
-            let mut u = vec![0.0; 3 * nn];
-            assert_eq!(nsdd_result_displacements(r, u.as_mut_ptr(), u.len()), NsddStatus::Ok);
-            let wu: Vec<f64> = want.displacements.iter().flatten().copied().collect();
-            assert_eq!(
-                u.iter().map(|x| x.to_bits()).collect::<Vec<_>>(),
-                wu.iter().map(|x| x.to_bits()).collect::<Vec<_>>(),
-                "{choice:?}"
-            );
+            let (r, _) = solve_as_rust_does(s, o, &want, &format!("{choice:?}"));
             let path = dir.join(format!("r{code}.json"));
             let cpath = CString::new(path.to_str().unwrap()).unwrap();
             assert_eq!(nsdd_result_write_json(r, cpath.as_ptr()), NsddStatus::Ok);
