@@ -18,7 +18,7 @@ use nsdd::decomposition::QualityReport;
 use nsdd::error::{Error, Result};
 use nsdd::model::Model;
 use nsdd::result::SolveResult;
-use nsdd::scene::{ElementKind, Method, Partitioner, Preconditioner, Scene, SearchDirection};
+use nsdd::scene::{ElementKind, Method, Preconditioner, Scene, SearchDirection};
 use nsdd::solve::{auto_subdomains, decompose, solve_with_progress, SolveOptions, WARNING_PREFIX};
 use nsdd::subdomain::SubdomainOperator;
 
@@ -504,8 +504,9 @@ fn method_options(
     max_iterations: usize,
     d: SearchDirection,
     preconditioner: Preconditioner,
-    partitioner: Partitioner,
+    scene: &SolveOptions,
 ) -> SolveOptions {
+    // The scene's partition and factorizations; the rest is the study's.
     SolveOptions {
         method,
         subdomains,
@@ -515,8 +516,8 @@ fn method_options(
         preconditioner,
         interface_scaling: Default::default(),
         adaptive_threshold: 0.0,
-        partitioner,
-        ordering: Default::default(),
+        partitioner: scene.partitioner,
+        ordering: scene.ordering,
     }
 }
 
@@ -575,7 +576,7 @@ pub fn accuracy(scene: &Scene, opts: &AccuracyOptions, mut obs: Observer<'_>) ->
         opts.max_iterations,
         opts.search_direction,
         opts.preconditioner,
-        scene.solver.partitioner,
+        &scene.solver,
     );
     let reference = run_solve(scene, &dopts, &mut obs)?;
     let mut rows = vec![AccuracyRow {
@@ -606,7 +607,7 @@ pub fn accuracy(scene: &Scene, opts: &AccuracyOptions, mut obs: Observer<'_>) ->
                 opts.max_iterations,
                 opts.search_direction,
                 opts.preconditioner,
-                scene.solver.partitioner,
+                &scene.solver,
             );
             match run_solve(scene, &o, &mut obs) {
                 Ok(r) => {
@@ -696,7 +697,7 @@ fn history_with_errors(
                     k,
                     opts.search_direction,
                     opts.preconditioner,
-                    scene.solver.partitioner,
+                    &scene.solver,
                 );
                 match run_solve(scene, &o, obs) {
                     Ok(rk) => compare(&rk, reference),
@@ -915,7 +916,7 @@ pub fn scaling(opts: &ScalingOptions, mut obs: Observer<'_>) -> Result<ScalingRe
                 opts.max_iterations,
                 opts.search_direction,
                 scene.solver.preconditioner,
-                scene.solver.partitioner,
+                &scene.solver,
             );
             let reference = run_solve(&scene, &dopts, &mut obs)?;
             slot.insert((scene, reference, model.n_free, model.elements.len()));
@@ -969,7 +970,7 @@ pub fn scaling(opts: &ScalingOptions, mut obs: Observer<'_>) -> Result<ScalingRe
                 opts.max_iterations,
                 opts.search_direction,
                 scene.solver.preconditioner,
-                scene.solver.partitioner,
+                &scene.solver,
             );
             let mut row = ScalingRow {
                 study: study.into(),
