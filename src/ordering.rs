@@ -169,15 +169,7 @@ fn supervariables(graph: &Graph) -> (Vec<usize>, Vec<usize>, Vec<usize>) {
         if la.binary_search(&b).is_err() {
             return false;
         }
-        let mut ia = la.iter().copied().filter(|&w| w != b);
-        let mut ib = lb.iter().copied().filter(|&w| w != a);
-        loop {
-            match (ia.next(), ib.next()) {
-                (None, None) => return true,
-                (Some(x), Some(y)) if x == y => {}
-                _ => return false,
-            }
-        }
+        la.iter().filter(|&&w| w != b).eq(lb.iter().filter(|&&w| w != a))
     };
     let mut rep = vec![usize::MAX; n];
     let mut i = 0;
