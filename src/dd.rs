@@ -272,6 +272,15 @@ pub(crate) struct SubState {
     /// `Z_E = K_E⁺ W_E` (`n × m_E`) and the global macro index of each column.
     pub(crate) z: Mat<f64>,
     pub(crate) macro_cols: Vec<usize>,
+    /// The rows of `Z_E` and `W_E` at `iface_dofs` (`W_E` is zero
+    /// elsewhere): the coarse right-hand side and the macro forces of a
+    /// homogeneous global step ([`crate::operator::InterfaceOperator`]).
+    pub(crate) z_iface: Mat<f64>,
+    pub(crate) w_iface: Mat<f64>,
+    /// Scratch of `iface_dofs`' length, and this subdomain's part of the
+    /// macro right-hand side (one entry per macro column).
+    pub(crate) rb: Vec<f64>,
+    pub(crate) zt_r: Vec<f64>,
     pub(crate) fm: Vec<f64>,
     pub(crate) alpha_off: usize,
     pub(crate) alpha: Vec<f64>,
@@ -344,7 +353,6 @@ pub(crate) struct IfaceState {
     /// `P_Γ` (`entries × m_Γ`), empty without coarse space.
     pub(crate) p: Mat<f64>,
     pub(crate) macro_off: usize,
-    pub(crate) pt: Vec<f64>,
     pub(crate) jump_norm2: f64,
     /// Lumped interface stiffness `diag(K_lo) + diag(K_hi)` per entry: turns
     /// a jump into the force it leaves unbalanced.
@@ -677,7 +685,6 @@ impl DdSolver {
                 jump: vec![0.0; it.len()],
                 p: Mat::zeros(0, 0),
                 macro_off: 0,
-                pt: Vec::new(),
                 jump_norm2: 0.0,
                 stiffness: Vec::new(),
                 force_norm2: 0.0,
@@ -781,7 +788,6 @@ impl DdSolver {
                 st.macro_off = off;
                 off += w;
                 if let Some(p) = b {
-                    st.pt = vec![0.0; p.ncols()];
                     st.p = p;
                 }
             }
@@ -828,6 +834,10 @@ impl DdSolver {
                 z,
                 coarse_kept,
                 macro_cols: Vec::new(),
+                z_iface: Mat::zeros(0, 0),
+                w_iface: Mat::zeros(0, 0),
+                rb: Vec::new(),
+                zt_r: Vec::new(),
                 fm: Vec::new(),
                 alpha_off: alpha_offsets[s],
                 alpha: vec![0.0; r],
@@ -928,14 +938,18 @@ impl DdSolver {
                         }
                     };
                     drop(w);
+                    st.z_iface = Mat::from_fn(rows.len(), m, |i, j| st.z[(rows[i] as usize, j)]);
                     if retain_blocks {
                         st.coarse_kept = Some(CoarseBlocks {
                             rows: rows.clone(),
-                            w: wi,
+                            w: wi.clone(),
                             l: l_e.clone(),
                             g: g_e.clone(),
                         });
                     }
+                    st.w_iface = wi;
+                    st.rb = vec![0.0; rows.len()];
+                    st.zt_r = vec![0.0; m];
                     st.fm = vec![0.0; m];
                     st.macro_cols = cols.clone();
                     CoarseContribution {
@@ -1112,6 +1126,22 @@ impl DdSolver {
             self.op.subs.par_iter_mut().for_each(|s| {
                 s.y.copy_from_slice(&s.b);
                 s.op.solve_in_place(&mut s.y);
+            });
+        }
+        t.elapsed().as_secs_f64() / reps as f64
+    }
+
+    /// Like [`Self::substitution_time`], with every interior factor of
+    /// the Dirichlet preconditioner (`cg`) and a right-hand side of ones
+    /// (0 without interior factors).
+    pub fn interior_substitution_time(&mut self, reps: usize) -> f64 {
+        let reps = reps.max(1);
+        let t = Instant::now();
+        for _ in 0..reps {
+            self.op.subs.par_iter_mut().for_each(|s| {
+                if let Some(ip) = s.interior.as_mut() {
+                    ip.substitute_ones();
+                }
             });
         }
         t.elapsed().as_secs_f64() / reps as f64

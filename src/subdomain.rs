@@ -857,6 +857,68 @@ pub struct InteriorProblem {
     /// The stiffness graph [`InteriorProblem::schur_block_near`] walks,
     /// kept between the faces of one set-up.
     graph: Option<SymmetricGraph>,
+    /// The rows of `K_E` at the interface dofs, both triangles, split by
+    /// column: [`InteriorProblem::apply_schur`] multiplies with these
+    /// (`K_bi`, `K_bb`) instead of the whole matrix twice.
+    rows: BoundaryRows,
+}
+
+/// The interface rows of a symmetric matrix in compressed form: row `k`
+/// (interface dof `boundary[k]`) has its interior couplings at
+/// `bi[bi_ptr[k]..bi_ptr[k + 1]]` (interior position, value) and its
+/// interface couplings at `bb[bb_ptr[k]..bb_ptr[k + 1]]` (local dof, value).
+#[derive(Default)]
+struct BoundaryRows {
+    boundary: Vec<u32>,
+    bi_ptr: Vec<usize>,
+    bi: Vec<(u32, f64)>,
+    bb_ptr: Vec<usize>,
+    bb: Vec<(u32, f64)>,
+}
+
+impl BoundaryRows {
+    /// From the stored lower triangle; `bpos`/`ipos` position each local
+    /// dof in the interface / interior lists ([`positions`]).
+    fn new(lower: &SparseColMat<usize, f64>, boundary: &[u32], bpos: &[u32], ipos: &[u32]) -> BoundaryRows {
+        let nb = boundary.len();
+        let a = lower.as_ref();
+        // (row position, column local dof, value) of every entry in an
+        // interface row, each stored entry seen from both ends.
+        let mut entries: Vec<(u32, u32, f64)> = Vec::new();
+        for j in 0..lower.ncols() {
+            for (i, &v) in a.row_idx_of_col(j).zip(a.val_of_col(j)) {
+                if bpos[i] != u32::MAX {
+                    entries.push((bpos[i], j as u32, v));
+                }
+                if i != j && bpos[j] != u32::MAX {
+                    entries.push((bpos[j], i as u32, v));
+                }
+            }
+        }
+        entries.sort_unstable_by_key(|&(r, c, _)| (r, c));
+        let (mut bi_ptr, mut bb_ptr) = (vec![0; nb + 1], vec![0; nb + 1]);
+        let (mut bi, mut bb) = (Vec::new(), Vec::new());
+        let mut e = entries.iter().peekable();
+        for k in 0..nb {
+            while let Some(&&(_, c, v)) = e.peek().filter(|x| x.0 as usize == k) {
+                if ipos[c as usize] != u32::MAX {
+                    bi.push((ipos[c as usize], v));
+                } else {
+                    bb.push((c, v));
+                }
+                e.next();
+            }
+            bi_ptr[k + 1] = bi.len();
+            bb_ptr[k + 1] = bb.len();
+        }
+        BoundaryRows {
+            boundary: boundary.to_vec(),
+            bi_ptr,
+            bi,
+            bb_ptr,
+            bb,
+        }
+    }
 }
 
 impl std::fmt::Debug for InteriorProblem {
@@ -878,7 +940,8 @@ impl InteriorProblem {
             is_boundary[b as usize] = true;
         }
         let interior: Vec<u32> = (0..n as u32).filter(|&l| !is_boundary[l as usize]).collect();
-        let triplets = principal_lower(&op.stiffness, &positions(n, &interior));
+        let ipos = positions(n, &interior);
+        let triplets = principal_lower(&op.stiffness, &ipos);
         let ni = interior.len();
         if ni == 0 {
             return Ok(InteriorProblem {
@@ -887,8 +950,10 @@ impl InteriorProblem {
                 rhs: Vec::new(),
                 face_scratch: Vec::new(),
                 graph: None,
+                rows: BoundaryRows::default(),
             });
         }
+        let rows = BoundaryRows::new(&op.stiffness, boundary, &positions(n, boundary), &ipos);
         let lower = lower_csc(ni, &triplets).map_err(|e| Error::Numerical(format!("subdomain {}: {e:?}", op.id)))?;
         // The ordering the subdomain chose, without trying the other one:
         // on the 30³ tower an interior whose subdomain took nested
@@ -918,28 +983,51 @@ impl InteriorProblem {
             rhs: vec![0.0; ni],
             face_scratch: Vec::new(),
             graph: None,
+            rows,
         })
     }
 
-    /// `y = K [x_b; u_i]` with `u_i = −K_ii⁻¹ K_ib x_b` the harmonic
-    /// extension: `y_b = S_E x_b`, `y_i = 0` up to round-off. `x` must be
-    /// zero off the interface on entry and is again on return. No
-    /// allocation.
-    pub fn apply_schur(&mut self, op: &SubdomainOperator, x: &mut [f64], y: &mut [f64]) {
-        op.apply(x, y);
+    /// `y_b = S_E x_b = K_bb x_b + K_bi u_i` on the interface dofs, with
+    /// `u_i = −K_ii⁻¹ K_ib x_b` the harmonic extension, from the interface
+    /// rows of `K_E` only; `y` is zero off the interface. `x` must be zero
+    /// off the interface and is left unchanged. No allocation.
+    pub fn apply_schur(&mut self, op: &SubdomainOperator, x: &[f64], y: &mut [f64]) {
         let Some(chol) = self.chol.as_mut() else {
+            op.apply(x, y);
             return;
         };
-        for (r, &l) in self.rhs.iter_mut().zip(&self.interior) {
-            *r = -y[l as usize];
+        let rows = &self.rows;
+        self.rhs.iter_mut().for_each(|r| *r = 0.0);
+        for (k, &b) in rows.boundary.iter().enumerate() {
+            let xb = x[b as usize];
+            if xb != 0.0 {
+                for &(i, v) in &rows.bi[rows.bi_ptr[k]..rows.bi_ptr[k + 1]] {
+                    self.rhs[i as usize] -= v * xb;
+                }
+            }
         }
         chol.solve_in_place(&mut self.rhs);
-        for (&u, &l) in self.rhs.iter().zip(&self.interior) {
-            x[l as usize] = u;
-        }
-        op.apply(x, y);
         for &l in &self.interior {
-            x[l as usize] = 0.0;
+            y[l as usize] = 0.0;
+        }
+        for (k, &b) in rows.boundary.iter().enumerate() {
+            let mut acc = 0.0;
+            for &(c, v) in &rows.bb[rows.bb_ptr[k]..rows.bb_ptr[k + 1]] {
+                acc += v * x[c as usize];
+            }
+            for &(i, v) in &rows.bi[rows.bi_ptr[k]..rows.bi_ptr[k + 1]] {
+                acc += v * self.rhs[i as usize];
+            }
+            y[b as usize] = acc;
+        }
+    }
+
+    /// One forward and backward substitution with the interior factor on a
+    /// right-hand side of ones (the cost bound of `nsdd bench iteration`).
+    pub fn substitute_ones(&mut self) {
+        if let Some(chol) = self.chol.as_mut() {
+            self.rhs.iter_mut().for_each(|r| *r = 1.0);
+            chol.solve_in_place(&mut self.rhs);
         }
     }
 

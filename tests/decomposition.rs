@@ -458,7 +458,7 @@ fn interior_problem_applies_the_dense_schur_complement() {
         let xb = Mat::from_fn(b.len(), 1, |i, _| x[b[i]]);
         let want = &schur * &xb;
         let mut y = vec![0.0; n];
-        ip.apply_schur(op, &mut x, &mut y);
+        ip.apply_schur(op, &x, &mut y);
         let scale = want.norm_l2();
         for (i, &l) in b.iter().enumerate() {
             assert!(
@@ -468,7 +468,7 @@ fn interior_problem_applies_the_dense_schur_complement() {
         }
         for &l in &interior {
             assert!(y[l].abs() < 1e-10 * scale, "subdomain {s}: force {} left inside", y[l]);
-            assert_eq!(x[l], 0.0, "x must be zero off the interface again");
+            assert_eq!(x[l], 0.0, "x is left as it was");
         }
     }
 }

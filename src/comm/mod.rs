@@ -14,7 +14,7 @@
 //!   interface or subdomain order whatever the threads (or ranks), so results
 //!   are deterministic.
 //! - **the coarse step** ([`Communicator::coarse_solve`]): the coarse
-//!   right-hand side is assembled from each interface's and subdomain's part,
+//!   right-hand side is summed from each subdomain's part,
 //!   solved, and its solution made readable to every subdomain.
 //! - **global vectors** ([`Communicator::assemble`]): the summed load and
 //!   the averaged displacement, once per solve.
@@ -190,17 +190,14 @@ pub trait Communicator: Send + Sync {
     /// `Σ_s f(s)` over all subdomains, in subdomain order, `N` sums at a time.
     fn sum_subdomains<const N: usize>(&self, f: impl Fn(usize) -> [f64; N]) -> [f64; N];
 
-    /// The coarse step: `coarse.rhs` gets `iface_part(i)` of every interface
-    /// at its macro offset and `sub_part(s)` of every subdomain at its
-    /// kernel offset (after the `n_macro` macro unknowns); the problem is
-    /// solved and its solution is readable by every subdomain afterwards
-    /// (`macro_forces`, `kernel_amplitudes`).
-    fn coarse_solve<'a>(
-        &self,
-        coarse: &mut CoarseProblem,
-        iface_part: impl Fn(usize) -> (usize, &'a [f64]),
-        sub_part: impl Fn(usize) -> (usize, &'a [f64]),
-    );
+    /// The coarse step: `coarse.rhs` is the sum over the subdomains of
+    /// their parts `part(s)` ([`CoarseRhsPart`]: macro values added at
+    /// their columns, the kernel part placed at its offset after the
+    /// `n_macro` macro unknowns); the problem is solved and its solution is
+    /// readable by every subdomain afterwards (`macro_forces`,
+    /// `kernel_amplitudes`). A macro column belongs to one interface, so it
+    /// gets two terms, whose sum has the same bits in any order.
+    fn coarse_solve<'a>(&self, coarse: &mut CoarseProblem, part: impl Fn(usize) -> CoarseRhsPart<'a>);
 
     /// A global vector summed from the subdomains' contributions, in
     /// subdomain order: `add(s, out)` adds subdomain `s`'s part into `out`
@@ -255,6 +252,30 @@ impl Seam {
     }
 }
 
+/// One subdomain's part of the coarse right-hand side: `macro_values[k]`
+/// adds to the macro unknown `macro_cols[k]` (`Z_Eᵀ r_E` or `W_Eᵀ y_E` on
+/// the macro columns of its interfaces), and `kernel` is its kernel block
+/// (`R_Eᵀ r_E`) at `kernel_off` among the kernel unknowns.
+#[derive(Clone, Copy)]
+pub struct CoarseRhsPart<'a> {
+    pub macro_cols: &'a [usize],
+    pub macro_values: &'a [f64],
+    pub kernel_off: usize,
+    pub kernel: &'a [f64],
+}
+
+impl CoarseRhsPart<'_> {
+    /// Adds the macro part into `rhs` and places the kernel part after its
+    /// `n_macro` macro unknowns.
+    pub(crate) fn add_to(&self, rhs: &mut [f64], n_macro: usize) {
+        for (&c, &x) in self.macro_cols.iter().zip(self.macro_values) {
+            rhs[c] += x;
+        }
+        let off = n_macro + self.kernel_off;
+        rhs[off..off + self.kernel.len()].copy_from_slice(self.kernel);
+    }
+}
+
 macro_rules! dispatch {
     ($self:ident, $c:ident => $e:expr) => {
         match $self {
@@ -287,13 +308,8 @@ impl Communicator for Seam {
         dispatch!(self, c => c.sum_subdomains(f))
     }
 
-    fn coarse_solve<'a>(
-        &self,
-        coarse: &mut CoarseProblem,
-        iface_part: impl Fn(usize) -> (usize, &'a [f64]),
-        sub_part: impl Fn(usize) -> (usize, &'a [f64]),
-    ) {
-        dispatch!(self, c => c.coarse_solve(coarse, iface_part, sub_part))
+    fn coarse_solve<'a>(&self, coarse: &mut CoarseProblem, part: impl Fn(usize) -> CoarseRhsPart<'a>) {
+        dispatch!(self, c => c.coarse_solve(coarse, part))
     }
 
     fn assemble(&self, out: &mut [f64], add: impl Fn(usize, &mut [f64])) {
@@ -375,20 +391,10 @@ impl Communicator for Threads {
         acc
     }
 
-    fn coarse_solve<'a>(
-        &self,
-        coarse: &mut CoarseProblem,
-        iface_part: impl Fn(usize) -> (usize, &'a [f64]),
-        sub_part: impl Fn(usize) -> (usize, &'a [f64]),
-    ) {
-        for i in 0..self.ends.len() {
-            let (off, x) = iface_part(i);
-            coarse.rhs[off..off + x.len()].copy_from_slice(x);
-        }
-        let nf = coarse.n_macro;
+    fn coarse_solve<'a>(&self, coarse: &mut CoarseProblem, part: impl Fn(usize) -> CoarseRhsPart<'a>) {
+        coarse.rhs.iter_mut().for_each(|x| *x = 0.0);
         for s in 0..self.n_subdomains {
-            let (off, x) = sub_part(s);
-            coarse.rhs[nf + off..nf + off + x.len()].copy_from_slice(x);
+            part(s).add_to(&mut coarse.rhs, coarse.n_macro);
         }
         coarse.solve();
     }

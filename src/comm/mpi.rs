@@ -28,7 +28,7 @@
 //! that drives the solve, never from rayon's workers: initialise it with
 //! `MPI_THREAD_FUNNELED` (the command line does) or better.
 
-use super::{block, owner_of, Communicator};
+use super::{block, owner_of, CoarseRhsPart, Communicator};
 use crate::coarse::CoarseProblem;
 use crate::decomposition::Decomposition;
 use crate::error::{Error, Result};
@@ -533,12 +533,7 @@ impl Communicator for MpiSeam {
         })
     }
 
-    fn coarse_solve<'a>(
-        &self,
-        coarse: &mut CoarseProblem,
-        iface_part: impl Fn(usize) -> (usize, &'a [f64]),
-        sub_part: impl Fn(usize) -> (usize, &'a [f64]),
-    ) {
+    fn coarse_solve<'a>(&self, coarse: &mut CoarseProblem, part_of: impl Fn(usize) -> CoarseRhsPart<'a>) {
         let nf = coarse.n_macro;
         let n = coarse.rhs.len();
         {
@@ -549,15 +544,11 @@ impl Communicator for MpiSeam {
             }
             let part = &mut parts[..n];
             part.iter_mut().for_each(|x| *x = 0.0);
-            for (i, &(lo, _)) in self.ends.iter().enumerate() {
-                if self.owned.contains(&lo) {
-                    let (off, x) = iface_part(i);
-                    part[off..off + x.len()].copy_from_slice(x);
-                }
-            }
+            // Each macro column has two terms (its interface's sides), so
+            // the reduction gives the bits of `Threads` whichever ranks hold
+            // them.
             for s in 0..self.owned.len() {
-                let (off, x) = sub_part(s);
-                part[nf + off..nf + off + x.len()].copy_from_slice(x);
+                part_of(s).add_to(part, nf);
             }
             self.count_reduction(n);
             // SAFETY: `part` and `coarse.rhs` hold `n` doubles each.
