@@ -5,7 +5,7 @@
 
 use crate::dd::{DdOptions, DdSolver};
 use crate::direct::DirectSolver;
-use crate::error::Result;
+use crate::error::{Error, Result};
 use crate::model::Model;
 use crate::scene::{Method, Scene, SearchDirection, SolverSettings};
 use crate::solve::decompose;
@@ -144,24 +144,40 @@ pub struct DdProfile {
     pub setup_s: f64,
     /// Time of one iteration (difference of two runs, divided).
     pub iteration_s: f64,
+    /// The method timed: `multilevel` or `cg`.
+    pub method: &'static str,
     /// One forward and backward substitution with every subdomain factor,
-    /// in parallel over subdomains as in the iteration.
+    /// and for `cg` with every interior factor too (its preconditioner
+    /// solves with them once per iteration), in parallel over subdomains
+    /// as in the iteration.
     pub substitution_s: f64,
+    /// The interior factors' part of `substitution_s` (0 for `multilevel`).
+    pub interior_substitution_s: f64,
     /// `iteration_s / substitution_s` (target ≤ 1.5).
     pub ratio: f64,
 }
 
-/// Measures per-iteration time against the triangular-solve bound.
-pub fn dd_profile(scene: &Scene, subdomains: usize, iterations: usize) -> Result<DdProfile> {
+/// Measures per-iteration time of `method` (multilevel or cg) against the
+/// triangular-solve bound.
+pub fn dd_profile(scene: &Scene, subdomains: usize, iterations: usize, method: Method) -> Result<DdProfile> {
+    if !matches!(method, Method::Multilevel | Method::Cg) {
+        return Err(Error::input(
+            "method",
+            None,
+            format!("the iteration profile times multilevel or cg, not {}", method.name()),
+        ));
+    }
     let model = Model::from_scene(scene)?;
     let t = Instant::now();
     let dec = decompose(&model, scene, subdomains)?;
     let partition_s = t.elapsed().as_secs_f64();
     let settings = SolverSettings {
-        method: Method::Multilevel,
+        method,
         max_iterations: 1,
         search_direction: SearchDirection::Auto,
         ordering: scene.solver.ordering,
+        interface_scaling: scene.solver.interface_scaling,
+        adaptive_threshold: scene.solver.adaptive_threshold,
         ..SolverSettings::default()
     };
     let mut dd = DdSolver::new(&model, &dec, DdOptions::from_settings(&settings)?)?;
@@ -178,7 +194,12 @@ pub fn dd_profile(scene: &Scene, subdomains: usize, iterations: usize) -> Result
     let t1 = run(&mut dd, 1)?;
     let tk = run(&mut dd, 1 + iterations)?;
     let iteration_s = ((tk - t1) / iterations as f64).max(0.0);
-    let substitution_s = dd.substitution_time(10);
+    let interior_substitution_s = if method == Method::Cg {
+        dd.interior_substitution_time(10)
+    } else {
+        0.0
+    };
+    let substitution_s = dd.substitution_time(10) + interior_substitution_s;
     let ns = dd.n_subdomains();
     let stats = dd.stats();
     Ok(DdProfile {
@@ -193,7 +214,9 @@ pub fn dd_profile(scene: &Scene, subdomains: usize, iterations: usize) -> Result
         search_direction_s: stats.search_direction_s,
         setup_s,
         iteration_s,
+        method: method.name(),
         substitution_s,
+        interior_substitution_s,
         ratio: iteration_s / substitution_s.max(1e-12),
     })
 }

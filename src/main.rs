@@ -290,6 +290,12 @@ struct BenchArgs {
     /// Unilateral cables (nonsmooth) instead of the linear grid
     #[arg(long)]
     nonsmooth: bool,
+    /// Method of the iteration profile: multilevel (the stationary
+    /// iteration; bound: one substitution with every subdomain factor) or
+    /// cg (the interface CG with the scene's preconditioner; bound: one
+    /// substitution with every subdomain factor and every interior factor)
+    #[arg(long, value_enum, default_value = "multilevel")]
+    method: IterativeArg,
     /// Write the rows as JSON lines to this file as well
     #[arg(long)]
     out: Option<PathBuf>,
@@ -1019,7 +1025,7 @@ fn cmd_bench(a: BenchArgs) -> Result<i32> {
             let direct = nsdd::bench::direct_profile(&scene)?;
             let direct_s = direct.assembly_s + direct.ordering_s + direct.factor_s;
             for &s in &a.subdomains {
-                let p = nsdd::bench::dd_profile(&scene, s, a.iterations)?;
+                let p = nsdd::bench::dd_profile(&scene, s, a.iterations, a.method.into())?;
                 println!(
                     "{:>6} {:>9} {:>5} {:>7} {:>7} {:>7} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>7.2} {:>10.3} {:>11.3} {:>6.2}",
                     n,
