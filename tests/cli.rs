@@ -985,6 +985,58 @@ fn direct_analysis_predicts_the_factor_without_factoring() {
     assert!(text(&out.stderr).contains("--analyse"), "{}", text(&out.stderr));
 }
 
+/// `bench iteration --method cg` times the interface CG and puts every
+/// interior factor's substitution into its bound (the Dirichlet
+/// preconditioner solves with them once per iteration); the stationary
+/// method's bound has none. A method the profile does not time is refused
+/// by name.
+#[test]
+fn bench_iteration_times_cg_against_subdomain_and_interior_substitutions() {
+    let rows = |method: &str| -> Value {
+        let out_path = tmp(&format!("bench-iteration-{method}")).join("rows.jsonl");
+        let out = nsdd(&[
+            "bench",
+            "iteration",
+            "--sizes",
+            "12",
+            "--subdomains",
+            "4",
+            "--iterations",
+            "3",
+            "--method",
+            method,
+            "--out",
+            s(&out_path),
+        ]);
+        ok(&out);
+        let body = std::fs::read_to_string(&out_path).unwrap();
+        serde_json::from_str(body.lines().next().unwrap()).unwrap()
+    };
+    let cg = rows("cg");
+    assert_eq!(cg["method"], "cg");
+    let (sub, int) = (
+        cg["substitution_s"].as_f64().unwrap(),
+        cg["interior_substitution_s"].as_f64().unwrap(),
+    );
+    assert!(int > 0.0 && sub > int, "bound {sub} with interiors {int}");
+    assert!(cg["iteration_s"].as_f64().unwrap() > 0.0);
+    let ml = rows("multilevel");
+    assert_eq!(ml["method"], "multilevel");
+    assert_eq!(ml["interior_substitution_s"].as_f64(), Some(0.0));
+    let out = nsdd(&[
+        "bench",
+        "iteration",
+        "--sizes",
+        "12",
+        "--subdomains",
+        "4",
+        "--method",
+        "monolevel",
+    ]);
+    assert!(!out.status.success());
+    assert!(text(&out.stderr).contains("multilevel or cg"), "{}", text(&out.stderr));
+}
+
 /// Output piped into a reader that stops early (`nsdd gen ... | head`)
 /// ends the process by SIGPIPE, as it does other command-line tools, not
 /// with a panic on the failed write.
