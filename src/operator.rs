@@ -639,23 +639,20 @@ mod tests {
         let v_loaded: Vec<Vec<f64>> = op.subs.iter().map(|s| s.v.clone()).collect();
         let jump_loaded: Vec<Vec<f64>> = op.ifaces.iter().map(|it| it.jump.clone()).collect();
         op.apply(&forces, false, false);
+        let v: Vec<Vec<f64>> = op.subs.iter().map(|s| s.v.clone()).collect();
+        let jumps: Vec<Vec<f64>> = op.ifaces.iter().map(|it| it.jump.clone()).collect();
+        let max_diff = |a: &[Vec<f64>], b: &[Vec<f64>]| {
+            a.iter()
+                .flatten()
+                .zip(b.iter().flatten())
+                .fold(0.0f64, |m, (x, y)| m.max((x - y).abs()))
+        };
         let scale = v_loaded.iter().flatten().fold(0.0f64, |m, x| m.max(x.abs()));
         assert!(scale > 0.0);
-        let dv = op
-            .subs
-            .iter()
-            .zip(&v_loaded)
-            .flat_map(|(s, v)| s.v.iter().zip(v).map(|(a, b)| (a - b).abs()))
-            .fold(0.0f64, f64::max);
+        let dv = max_diff(&v, &v_loaded);
         assert!(dv < 1e-10 * scale, "displacements differ by {dv:e} of {scale:e}");
-        let dj = op
-            .ifaces
-            .iter()
-            .zip(&jump_loaded)
-            .flat_map(|(it, j)| it.jump.iter().zip(j).map(|(a, b)| (a - b).abs()))
-            .fold(0.0f64, f64::max);
+        let dj = max_diff(&jumps, &jump_loaded);
         assert!(dj < 1e-10 * scale, "jumps differ by {dj:e}");
-        let jumps: Vec<Vec<f64>> = op.ifaces.iter().map(|it| it.jump.clone()).collect();
         let (m2, j2) = op.macro_part2(&jumps);
         assert!(
             j2 > 0.0 && m2.sqrt() < 1e-10 * j2.sqrt(),

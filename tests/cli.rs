@@ -992,9 +992,8 @@ fn direct_analysis_predicts_the_factor_without_factoring() {
 /// by name.
 #[test]
 fn bench_iteration_times_cg_against_subdomain_and_interior_substitutions() {
-    let rows = |method: &str| -> Value {
-        let out_path = tmp(&format!("bench-iteration-{method}")).join("rows.jsonl");
-        let out = nsdd(&[
+    let bench = |method: &str, out: &Path| {
+        nsdd(&[
             "bench",
             "iteration",
             "--sizes",
@@ -1006,9 +1005,12 @@ fn bench_iteration_times_cg_against_subdomain_and_interior_substitutions() {
             "--method",
             method,
             "--out",
-            s(&out_path),
-        ]);
-        ok(&out);
+            s(out),
+        ])
+    };
+    let rows = |method: &str| -> Value {
+        let out_path = tmp(&format!("bench-iteration-{method}")).join("rows.jsonl");
+        ok(&bench(method, &out_path));
         let body = std::fs::read_to_string(&out_path).unwrap();
         serde_json::from_str(body.lines().next().unwrap()).unwrap()
     };
@@ -1023,16 +1025,7 @@ fn bench_iteration_times_cg_against_subdomain_and_interior_substitutions() {
     let ml = rows("multilevel");
     assert_eq!(ml["method"], "multilevel");
     assert_eq!(ml["interior_substitution_s"].as_f64(), Some(0.0));
-    let out = nsdd(&[
-        "bench",
-        "iteration",
-        "--sizes",
-        "12",
-        "--subdomains",
-        "4",
-        "--method",
-        "monolevel",
-    ]);
+    let out = bench("monolevel", &tmp("bench-iteration-monolevel").join("rows.jsonl"));
     assert!(!out.status.success());
     assert!(text(&out.stderr).contains("multilevel or cg"), "{}", text(&out.stderr));
 }
