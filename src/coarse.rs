@@ -833,11 +833,14 @@ fn gemv(a: &Mat<f64>, x: &[f64], y: &mut [f64]) {
 }
 
 /// Smallest eigenvalue of `GᵀG`, relative to the largest, below which a
-/// kernel mode counts as unrestrained.
-const RANK_RTOL: f64 = 1e-12;
+/// kernel mode counts as unrestrained. At 1e-12 the shallow two-bar truss
+/// with a rise of 1e-6 (ratio exactly 1e-12, solved by the direct solver)
+/// passed or failed by its kernels' round-off; an exactly collinear one
+/// gives ~1e-32.
+const RANK_RTOL: f64 = 1e-13;
 
 /// Cholesky pivot ratio and estimated smallest eigenvalue (relative to the
-/// trace, a margin of 100 over [`RANK_RTOL`]) from which `GᵀG` is taken as
+/// trace, a margin of 1000 over [`RANK_RTOL`]) from which `GᵀG` is taken as
 /// full rank without its eigendecomposition; the inverse-iteration steps of
 /// that estimate.
 const RANK_PIVOT_RATIO: f64 = 1e-8;

@@ -703,7 +703,7 @@ impl DdSolver {
                 } else {
                     (it.hi, &it.hi_idx)
                 };
-                let r = operators[s - first].kernel();
+                let r = operators[s - first].macro_trace_kernel();
                 (0..r.ncols())
                     .flat_map(|q| idx.iter().map(move |&l| r[(l as usize, q)]))
                     .collect()

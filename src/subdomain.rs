@@ -80,6 +80,107 @@ pub const ROUNDOFF_NEGATIVE_PIVOT: f64 = 1e-3;
 /// the scan's negligible threshold and `‖K r‖ / ‖K‖` below [`KERNEL_TOL`].
 pub const NEGATIVE_ENERGY_TOL: f64 = MECHANISM_TOL;
 
+/// A subdomain whose kernel is exactly its rigid motions takes them, from
+/// the node coordinates, as its kernel basis when they leave `‖K r‖ /
+/// (max diag K ‖r‖)` below this: exact up to the round-off of the
+/// coordinates, where the computed basis carries `cond(K_rr) ε`.
+const RIGID_TOL: f64 = 1e-13;
+/// A computed kernel basis whose residual is below this is left as it is.
+const ROUNDOFF_KERNEL: f64 = 1e-14;
+
+/// The rigid motions (3 translations, 3 rotations about the centroid) of
+/// the subdomain's nodes on its local dofs, orthonormalised (rank revealed:
+/// fewer columns where the nodes are collinear or components fixed).
+fn rigid_motions(model: &Model, sd: &SubdomainDofs) -> Mat<f64> {
+    let n = sd.dofs.len();
+    let owners: Vec<(usize, usize)> = sd.dofs.iter().map(|&d| model.dof_owner(d)).collect();
+    let mut c = [0.0; 3];
+    for &(node, _) in &owners {
+        for (ci, x) in c.iter_mut().zip(model.coords[node]) {
+            *ci += x / n as f64;
+        }
+    }
+    let raw = Mat::from_fn(n, 6, |l, j| {
+        let (node, comp) = owners[l];
+        let x = model.coords[node];
+        let d = [x[0] - c[0], x[1] - c[1], x[2] - c[2]];
+        if j < 3 {
+            (comp == j) as usize as f64
+        } else {
+            // (e_a × d)_comp for the axis a = j − 3.
+            match (j - 3, comp) {
+                (0, 1) => -d[2],
+                (0, 2) => d[1],
+                (1, 0) => d[2],
+                (1, 2) => -d[0],
+                (2, 0) => -d[1],
+                (2, 1) => d[0],
+                _ => 0.0,
+            }
+        }
+    });
+    orthonormal_columns(&raw, 1e-10)
+}
+
+/// The kernel basis `kernel` with its rigid part made exact: the
+/// combinations of the rigid motions `rigid` (orthonormal) that `K` maps to
+/// round-off (below [`RIGID_TOL`]) replace their computed counterparts, and
+/// the rest of the computed kernel (mechanisms that are not rigid motions)
+/// is kept, orthogonal to them. `None` when no rigid motion is in the
+/// kernel, or more of them than the kernel's dimension.
+fn exact_rigid_part(lower: &SparseColMat<usize, f64>, rigid: &Mat<f64>, kernel: &Mat<f64>) -> Option<Mat<f64>> {
+    let (n, g, r) = (rigid.nrows(), rigid.ncols(), kernel.ncols());
+    if g == 0 || r == 0 {
+        return None;
+    }
+    let cols: Vec<f64> = (0..g)
+        .flat_map(|j| (0..n).map(move |i| (i, j)))
+        .map(|(i, j)| rigid[(i, j)])
+        .collect();
+    let mut kg = vec![0.0; n * g];
+    sym_matmat(lower, &cols, &mut kg, g);
+    // Singular values of `K G` to the precision of its largest (squaring
+    // it into `GᵀK²G` would resolve only ~1e-8 of it); `V`'s columns of
+    // the smallest ones are the combinations `K` maps to round-off.
+    let kg = faer::MatRef::from_column_major_slice(&kg, n, g);
+    let svd = kg.thin_svd().ok()?;
+    let scale = diag_max(lower);
+    let sv = svd.S().column_vector();
+    let null: Vec<usize> = (0..g).filter(|&j| sv[j] < RIGID_TOL * scale).collect();
+    let k0 = null.len();
+    if k0 == 0 || k0 > r {
+        return None;
+    }
+    let v = svd.V();
+    let exact = rigid * Mat::from_fn(g, k0, |i, j| v[(i, null[j])]);
+    // The computed kernel without its part along `exact`: rank r − k0.
+    let rest = kernel - &exact * (exact.transpose() * kernel);
+    let svd = rest.thin_svd().ok()?;
+    let mut basis = Mat::zeros(n, r);
+    basis.get_mut(.., 0..k0).copy_from(&exact);
+    basis.get_mut(.., k0..r).copy_from(svd.U().get(.., 0..r - k0));
+    Some(basis)
+}
+
+/// `max_j ‖K r_j‖ / (max diag K ‖r_j‖)` over the columns of `r`.
+fn kernel_residual(lower: &SparseColMat<usize, f64>, r: &Mat<f64>) -> f64 {
+    let (n, k) = (r.nrows(), r.ncols());
+    let cols: Vec<f64> = (0..k)
+        .flat_map(|j| (0..n).map(move |i| (i, j)))
+        .map(|(i, j)| r[(i, j)])
+        .collect();
+    let mut kr = vec![0.0; n * k];
+    sym_matmat(lower, &cols, &mut kr, k);
+    let scale = diag_max(lower);
+    (0..k)
+        .map(|j| {
+            let num = kr[j * n..(j + 1) * n].iter().map(|v| v * v).sum::<f64>().sqrt();
+            let den = cols[j * n..(j + 1) * n].iter().map(|v| v * v).sum::<f64>().sqrt();
+            num / (scale * den)
+        })
+        .fold(0.0, f64::max)
+}
+
 /// The factored stiffness of one subdomain.
 pub struct SubdomainOperator {
     pub id: usize,
@@ -90,6 +191,12 @@ pub struct SubdomainOperator {
     fixing: Vec<usize>,
     /// Orthonormal kernel basis, `n × r` column-major.
     kernel: Mat<f64>,
+    /// The kernel basis as the factorization computed it, kept when the
+    /// rigid motions replaced its rigid part (see
+    /// [`SubdomainOperator::macro_trace_kernel`]).
+    factored_kernel: Option<Mat<f64>>,
+    /// `max_j ‖K r_j‖ / max diag K` of the computed basis.
+    kernel_error: f64,
 }
 
 impl std::fmt::Debug for SubdomainOperator {
@@ -123,7 +230,7 @@ impl SubdomainOperator {
         // factorization would only fail, after most of the work (a floating
         // subdomain's round-off pivots come last), so it goes straight to
         // the pivot scan (30³ tower: 7-10 % of the factor phase, one thread).
-        Self::from_matrix_known(
+        let mut op = Self::from_matrix_known(
             id,
             stiffness,
             max_rhs,
@@ -132,7 +239,22 @@ impl SubdomainOperator {
             &name,
             sd.translates_freely(model),
             ordering,
-        )
+        )?;
+        // The computed kernel carries `cond(K_rr) ε`; rigid motions from
+        // the coordinates are exact to round-off. Large floating parts move
+        // rigidly by far more than they strain (a 1e6-dof plate), and the
+        // kernel's error then shows in the element tensions.
+        // A basis already at round-off has nothing to gain (and the work is
+        // `n r²` for the `r` modes of a nonsmooth step's floating parts).
+        if op.kernel_dim() > 0 && op.kernel_error > ROUNDOFF_KERNEL {
+            let rigid = rigid_motions(model, sd);
+            if let Some(k) = exact_rigid_part(&op.stiffness, &rigid, &op.kernel) {
+                if kernel_residual(&op.stiffness, &k) < op.kernel_error {
+                    op.factored_kernel = Some(std::mem::replace(&mut op.kernel, k));
+                }
+            }
+        }
+        Ok(op)
     }
 
     /// Factors a given symmetric matrix (lower triangle, CSC). `kernel`, if
@@ -249,6 +371,8 @@ impl SubdomainOperator {
                     chol,
                     fixing: Vec::new(),
                     kernel: Mat::zeros(n, 0),
+                    factored_kernel: None,
+                    kernel_error: 0.0,
                 })
             }
             Err(FactorError::Internal(m)) => return Err(Error::Numerical(format!("subdomain {id}: {m}"))),
@@ -307,6 +431,8 @@ impl SubdomainOperator {
             chol,
             fixing,
             kernel: Mat::zeros(n, 0),
+            factored_kernel: None,
+            kernel_error: 0.0,
         };
         let mut cols = op.fixed_kernel_columns();
         // Tell mechanisms from soft stiffness among the suspects. With
@@ -404,16 +530,15 @@ impl SubdomainOperator {
                     }
                 }
             }
-            let failed = (0..r).find_map(|j| {
-                let (col, kr) = (&qc[j * n..(j + 1) * n], &kq[j * n..(j + 1) * n]);
-                let res = kr.iter().map(|v| v * v).sum::<f64>().sqrt() / scale;
-                (!(res < KERNEL_TOL)).then(|| {
-                    let worst = largest_entry(col.iter().copied());
-                    (worst, res)
-                })
+            let residuals: Vec<f64> = (0..r)
+                .map(|j| kq[j * n..(j + 1) * n].iter().map(|v| v * v).sum::<f64>().sqrt() / scale)
+                .collect();
+            let failed = residuals.iter().enumerate().find_map(|(j, &res)| {
+                (!(res < KERNEL_TOL)).then(|| (largest_entry(qc[j * n..(j + 1) * n].iter().copied()), res))
             });
             let Some((worst, res)) = failed else {
                 self.kernel = q;
+                self.kernel_error = residuals.into_iter().fold(0.0, f64::max);
                 return Ok(());
             };
             if rescued {
@@ -500,6 +625,17 @@ impl SubdomainOperator {
     /// The orthonormal kernel basis `R_E` (`n × r`).
     pub fn kernel(&self) -> &Mat<f64> {
         &self.kernel
+    }
+
+    /// The kernel basis whose interface traces enrich the macro basis:
+    /// [`Self::kernel`], or the basis the factorization computed when the
+    /// exact rigid motions replaced its rigid part. Its traces deviate from
+    /// the geometric macro modes by that basis's round-off, which points
+    /// along the subdomain's softest modes, and the macro basis keeps those
+    /// deviations as columns ([`crate::coarse::MACRO_RANK_RTOL`]); cg uses
+    /// them (BENCHMARKS.md, session 23).
+    pub fn macro_trace_kernel(&self) -> &Mat<f64> {
+        self.factored_kernel.as_ref().unwrap_or(&self.kernel)
     }
 
     /// Fixing dofs (local) of a singular subdomain: `K⁺ r = [K_rr⁻¹ r_r; 0]`.
@@ -1586,6 +1722,8 @@ mod tests {
             chol,
             fixing: fixing.clone(),
             kernel: Mat::zeros(n, 0),
+            factored_kernel: None,
+            kernel_error: 0.0,
         };
         let mut cols = op.fixed_kernel_columns();
         for (p, c) in cols.iter_mut().enumerate() {
