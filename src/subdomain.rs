@@ -133,16 +133,10 @@ fn exact_rigid_part(lower: &SparseColMat<usize, f64>, rigid: &Mat<f64>, kernel: 
     if g == 0 || r == 0 {
         return None;
     }
-    let cols: Vec<f64> = (0..g)
-        .flat_map(|j| (0..n).map(move |i| (i, j)))
-        .map(|(i, j)| rigid[(i, j)])
-        .collect();
-    let mut kg = vec![0.0; n * g];
-    sym_matmat(lower, &cols, &mut kg, g);
     // Singular values of `K G` to the precision of its largest (squaring
     // it into `GᵀK²G` would resolve only ~1e-8 of it); `V`'s columns of
     // the smallest ones are the combinations `K` maps to round-off.
-    let kg = faer::MatRef::from_column_major_slice(&kg, n, g);
+    let kg = stiffness_times(lower, rigid);
     let svd = kg.thin_svd().ok()?;
     let scale = diag_max(lower);
     let sv = svd.S().column_vector();
@@ -162,22 +156,23 @@ fn exact_rigid_part(lower: &SparseColMat<usize, f64>, rigid: &Mat<f64>, kernel: 
     Some(basis)
 }
 
+/// `K M` for the stored lower triangle of `K` and a dense `M`.
+fn stiffness_times(lower: &SparseColMat<usize, f64>, m: &Mat<f64>) -> Mat<f64> {
+    let (n, k) = (m.nrows(), m.ncols());
+    let cols: Vec<f64> = (0..k)
+        .flat_map(|j| m.col(j).iter().copied().collect::<Vec<_>>())
+        .collect();
+    let mut km = vec![0.0; n * k];
+    sym_matmat(lower, &cols, &mut km, k);
+    Mat::from_fn(n, k, |i, j| km[j * n + i])
+}
+
 /// `max_j ‖K r_j‖ / (max diag K ‖r_j‖)` over the columns of `r`.
 fn kernel_residual(lower: &SparseColMat<usize, f64>, r: &Mat<f64>) -> f64 {
-    let (n, k) = (r.nrows(), r.ncols());
-    let cols: Vec<f64> = (0..k)
-        .flat_map(|j| (0..n).map(move |i| (i, j)))
-        .map(|(i, j)| r[(i, j)])
-        .collect();
-    let mut kr = vec![0.0; n * k];
-    sym_matmat(lower, &cols, &mut kr, k);
+    let kr = stiffness_times(lower, r);
     let scale = diag_max(lower);
-    (0..k)
-        .map(|j| {
-            let num = kr[j * n..(j + 1) * n].iter().map(|v| v * v).sum::<f64>().sqrt();
-            let den = cols[j * n..(j + 1) * n].iter().map(|v| v * v).sum::<f64>().sqrt();
-            num / (scale * den)
-        })
+    (0..r.ncols())
+        .map(|j| kr.col(j).norm_l2() / (scale * r.col(j).norm_l2()))
         .fold(0.0, f64::max)
 }
 
