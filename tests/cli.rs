@@ -836,7 +836,7 @@ fn extreme_subdomain_count_warns() {
 fn results_do_not_depend_on_the_thread_count() {
     let d = tmp("threads");
     let scene = d.join("plate.toml");
-    let o = nsdd(&[
+    ok(&nsdd(&[
         "gen",
         "grid",
         "nx=80",
@@ -845,8 +845,7 @@ fn results_do_not_depend_on_the_thread_count() {
         "t0=0",
         "--out",
         s(&scene),
-    ]);
-    assert!(o.status.success(), "{}", text(&o.stderr));
+    ]));
     let run = |threads: &str| -> Value {
         let out = d.join(format!("r{threads}.json"));
         let o = Command::new(env!("CARGO_BIN_EXE_nsdd"))
@@ -1060,7 +1059,7 @@ fn a_closed_pipe_ends_quietly() {
 fn ordering_flag_reaches_the_factors_and_the_report() {
     let d = tmp("ordering");
     let scene = d.join("tower.toml");
-    let o = nsdd(&[
+    ok(&nsdd(&[
         "gen",
         "tower",
         "nx=10",
@@ -1069,8 +1068,7 @@ fn ordering_flag_reaches_the_factors_and_the_report() {
         "unilateral=false",
         "--out",
         s(&scene),
-    ]);
-    assert!(o.status.success(), "{}", text(&o.stderr));
+    ]));
     let mut nnz = Vec::new();
     for (flag, want) in [
         ("amd", "(nested dissection 0, amd 8)"),
