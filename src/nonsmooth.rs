@@ -749,7 +749,8 @@ impl NonsmoothCg {
             }
             let inner_converged = out.converged();
             let inner_status = out.status;
-            if capped && !inner_converged && out.history.last().is_some_and(|h| !(h.indicator <= EARLY_STOP_LIFT)) {
+            let inner_indicator = out.history.last().map_or(f64::NAN, |h| h.indicator);
+            if capped && !inner_converged && !(inner_indicator <= EARLY_STOP_LIFT) {
                 cap_lifted = true;
             }
             forces = Some(keyed_forces(dec, &dd.interface_forces()));
@@ -821,11 +822,12 @@ impl NonsmoothCg {
             let settles = flips == 0 || settling.record(outer, flips);
             if std::env::var_os("NSDD_NS_DEBUG").is_some() {
                 eprintln!(
-                    "outer {outer}: {} slack, soft {soft}, inner tol {inner_tol:.1e}, {} its (conv {}, {:?}), setup {setup_s:.3}s, cg {:.3}s, {} flips, violation {violation:.2e}",
+                    "outer {outer}: {} slack, soft {soft}, inner tol {inner_tol:.1e}, {} its (conv {}, {:?}, indicator {:.1e}), setup {setup_s:.3}s, cg {:.3}s, {} flips, violation {violation:.2e}",
                     slack.iter().filter(|&&s| s).count(),
                     out.iterations,
                     inner_converged,
                     inner_status,
+                    inner_indicator,
                     t_inner.elapsed().as_secs_f64(),
                     flips
                 );
