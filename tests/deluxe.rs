@@ -170,6 +170,44 @@ fn contrast_1e8_stops_at_its_floor_with_accurate_tensions() {
     assert!(eu < 1e-6 && et < 1e-6, "errors {eu:.2e} {et:.2e}");
 }
 
+/// The force part of cg's indicator is the preconditioned jump, not the
+/// jump times the lumped interface stiffness, which stood 1 000× and more
+/// above the tension error and set a floor under it (session 25). At
+/// contrast 1e8 the tower now converges at 1e-6 (it stalled at 8e-5
+/// before) with tensions within the tolerance of the direct solve's (whose
+/// own error is 4.3e-7 against a 40-digit solution); the 12³ contrast
+/// tower (bars 1e4 × the cables) on 16 subdomains converges at 1e-8
+/// (stalled after 1 043 iterations before).
+#[test]
+fn the_preconditioned_jump_certifies_where_the_lumped_force_floored() {
+    let scene = taut_tower(1e-4);
+    let d = direct(&scene);
+    let opts = SolveOptions {
+        method: Method::Cg,
+        subdomains: 4,
+        tolerance: 1e-6,
+        max_iterations: 2000,
+        ..Default::default()
+    };
+    let r = solve(&scene, &opts).unwrap();
+    assert_eq!(r.status, Status::Converged, "{:?}", r.stop_message);
+    let (eu, et) = errors(&r, &d);
+    assert!(eu < 1e-6 && et < 1e-6, "errors {eu:.2e} {et:.2e}");
+
+    let cube = nsdd::generate::tower(&nsdd::generate::TowerParams {
+        nx: 12,
+        ny: 12,
+        nz: 12,
+        unilateral: false,
+        ..Default::default()
+    });
+    let d = direct(&cube);
+    let r = cg(&cube, 16, InterfaceScaling::default());
+    assert_eq!(r.status, Status::Converged, "{:?}", r.stop_message);
+    let (eu, et) = errors(&r, &d);
+    assert!(eu < 1e-8 && et < 1e-8, "errors {eu:.2e} {et:.2e}");
+}
+
 /// The README's tower on 16 subdomains (contrast 1e4, 89 % of the dofs on
 /// interfaces) stalled at a force-balance floor of ~5e-7 until the set-up's
 /// subdomain factors went supernodal (2026-11-25; it now converges in 110

@@ -681,7 +681,17 @@ fn tiny_stiffness_brace_matches_analytic() {
             }) {
                 Ok(m) => {
                     assert_finite(&m, "multilevel");
-                    let eu = rel_err(&flat(&m.displacements), &flat(&r.displacements));
+                    // Against the analytic values, not the direct solve: at
+                    // ratio 1e-8 the direct sway is 3.2e-8 off them (the
+                    // round-off allowed above), while cg, with the brace
+                    // alone in its subdomain, is exact to 1e-15 and says so.
+                    let mu = [
+                        m.displacements[2][0],
+                        m.displacements[2][1],
+                        m.displacements[3][0],
+                        m.displacements[3][1],
+                    ];
+                    let eu = rel_err(&mu, &expect);
                     eprintln!(
                         "{method:?} brace {ratio:e}: converged={} it={} eu={eu:.1e}",
                         m.converged, m.iterations
