@@ -413,6 +413,11 @@ pub struct DdStats {
     /// Weights of the CG preconditioner (the deluxe blocks: one Schur
     /// complement application per face dof).
     pub scaling_s: f64,
+    /// Largest over smallest positive diagonal entry of the subdomain
+    /// stiffnesses (about 10× the largest over the smallest `EA/L` of a
+    /// truss): which force part cg's indicator takes
+    /// ([`crate::cg_stopping::LUMPED_FORCE_SPREAD`]).
+    pub stiffness_spread: f64,
 }
 
 /// The set-up DD solver: factorizations, macro space and coarse problem,
@@ -857,6 +862,21 @@ impl DdSolver {
         }
 
         let diags: Vec<Vec<f64>> = subs.iter().map(|s| s.op.diagonal()).collect();
+        // Largest over smallest positive stiffness diagonal, over every
+        // subdomain: cg's choice of the indicator's force part.
+        let (dmin, dmax) = diags
+            .iter()
+            .flatten()
+            .filter(|&&d| d > 0.0)
+            .fold((f64::INFINITY, 0.0f64), |(lo, hi), &d| (lo.min(d), hi.max(d)));
+        let ends = seam.gather(&[dmax, -dmin]);
+        let dmax = ends.iter().step_by(2).fold(0.0f64, |a, &b| a.max(b));
+        let dmin = -ends.iter().skip(1).step_by(2).fold(f64::NEG_INFINITY, |a, &b| a.max(b));
+        let stiffness_spread = if dmin.is_finite() && dmin > 0.0 {
+            dmax / dmin
+        } else {
+            1.0
+        };
         let sides = seam.exchange(|i, is_lo| {
             let it = &ifaces[i];
             let (s, idx) = if is_lo {
@@ -1006,6 +1026,7 @@ impl DdSolver {
             adaptive_s,
             kernel_unknowns: alpha_off,
             interface_entries: dec.n_entries(),
+            stiffness_spread,
             nnz_l: total(&op_sizes, 0),
             interior_nnz_l: 0,
             nested_dissection_factors: total(&op_sizes, 1),

@@ -533,6 +533,33 @@ fn contrast_1e8_with_unilateral_cables_is_reported_not_hidden() {
     }
 }
 
+/// At contrast 1e8 (stiffness spread 1e9) cg keeps the lumped force
+/// `k ∘ J V` as its indicator's force part: with the preconditioned jump,
+/// which serves up to a spread of 1e7, this tower claimed 1e-6 on 4
+/// subdomains with tensions 4e-4 off the direct solve's, and 1e-4 on 16
+/// with stiff bars' tensions 10 instead of 0.1. A claim must hold.
+#[test]
+fn contrast_1e8_claims_no_tolerance_it_misses() {
+    let scene = tower(&TowerParams {
+        nx: 2,
+        ny: 2,
+        nz: 10,
+        ea_cable: 1e-4,
+        ..Default::default()
+    });
+    let direct = solve(&scene, &opts(Method::Direct, 1, 1e-8)).expect("direct solve");
+    for (subdomains, tol) in [(4, 1e-6), (16, 1e-4)] {
+        let cg = solve(&scene, &opts(Method::Cg, subdomains, tol)).expect("cg solve");
+        if cg.converged {
+            let et = rel_err(&cg.tensions, &direct.tensions);
+            assert!(
+                et <= 10.0 * tol,
+                "{subdomains}: claimed {tol:e} with tension error {et:.2e}"
+            );
+        }
+    }
+}
+
 /// A cable set that does not settle ends the solve as not converged with a
 /// message that says so (the window is 0 here, so a 16² grid, whose first
 /// all-taut step flips many cables, reaches that ending at once), and the

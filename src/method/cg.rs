@@ -214,7 +214,12 @@ impl DdSolver {
             let (jump, monitor) = self.cg_jump(ws, b_norm);
             self.op
                 .precondition(&ws.r, &ws.w, &mut ws.deluxe, &mut ws.sl, &mut ws.sh, &mut ws.z);
-            let mut indicator = indicator_of(jump, self.cg_force(&ws.z, b_norm));
+            let lumped = self.lumped_force();
+            let mut indicator = if lumped {
+                monitor
+            } else {
+                indicator_of(jump, self.cg_force(&ws.z, b_norm))
+            };
             history.push(cg_entry(iterations, t0, indicator));
             if !indicator.is_finite() {
                 ended = Some((Status::Diverged, "the iterate is no longer finite (NaN or Inf)".into()));
@@ -230,7 +235,7 @@ impl DdSolver {
                 restarts,
                 &history[history.len() - (iterations - restart_at)..],
             );
-            if converged {
+            if converged && !lumped {
                 indicator = indicator_of(jump, self.cg_true_force(ws, b_norm));
                 if let Some(last) = history.last_mut() {
                     last.indicator = indicator;
@@ -264,7 +269,11 @@ impl DdSolver {
             let drifted = m2.sqrt() > CG_DRIFT * r2.sqrt() && iterations - restart_at >= CG_DRIFT_SPACING;
             if grew || stagnant || drifted {
                 if restarts == CG_MAX_RESTARTS {
-                    let force = self.cg_true_force(ws, b_norm);
+                    let force = if lumped {
+                        monitor
+                    } else {
+                        self.cg_true_force(ws, b_norm)
+                    };
                     let floor = if jump < ROUNDOFF_JUMP && force > jump {
                         format!(
                             ": the jump is at round-off ({jump:.1e} of the displacement) but the interface force \
@@ -413,8 +422,19 @@ impl DdSolver {
 
     /// The indicator of the CG iterate measured on its true jump.
     fn cg_true_indicator(&mut self, ws: &mut CgWorkspace, b_norm: f64) -> f64 {
-        let (jump, _) = self.cg_jump(ws, b_norm);
-        indicator_of(jump, self.cg_true_force(ws, b_norm))
+        let (jump, monitor) = self.cg_jump(ws, b_norm);
+        if self.lumped_force() {
+            monitor
+        } else {
+            indicator_of(jump, self.cg_true_force(ws, b_norm))
+        }
+    }
+
+    /// Whether the indicator's force part is the lumped force `k ∘ J V`
+    /// (stiffness spread from [`cg_stopping::LUMPED_FORCE_SPREAD`] on)
+    /// rather than the preconditioned jump.
+    fn lumped_force(&self) -> bool {
+        self.stats.stiffness_spread >= cg_stopping::LUMPED_FORCE_SPREAD
     }
 
     /// The stopping test (Status::Converged either way): the energy error
