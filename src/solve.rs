@@ -434,6 +434,15 @@ pub fn solve_in(
                 col(3)
             ));
         }
+        let spread = dd.stats().stiffness_spread;
+        if opts.method == Method::Cg && spread >= crate::cg_stopping::LUMPED_FORCE_SPREAD {
+            notes.push(format!(
+                "cg: the stiffness spread is {spread:.1e} (largest over smallest stiffness diagonal): the \
+                 indicator measures the force error by the stiffness-weighted jump, which is pessimistic \
+                 and may stall above a tight tolerance, because the preconditioned jump let wrong answers \
+                 pass at this contrast"
+            ));
+        }
         if let Some(r) = dd.coarse_residual().filter(|r| !(*r <= COARSE_RESIDUAL_NOTE)) {
             notes.push(format!(
                 "the coarse problem was solved to a backward error of only {r:.1e} (badly conditioned \

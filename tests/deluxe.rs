@@ -166,6 +166,12 @@ fn contrast_1e8_stops_at_its_floor_with_accurate_tensions() {
     assert!(r.iterations < 2000, "{} iterations", r.iterations);
     let why = r.stop_message.clone().unwrap_or_default();
     assert!(why.contains("round-off"), "{why}");
+    // The result says why this contrast keeps the pessimistic force part.
+    assert!(
+        r.notes.iter().any(|n| n.contains("stiffness spread is 1.0e9")),
+        "{:?}",
+        r.notes
+    );
     let (eu, et) = errors(&r, &d);
     assert!(eu < 1e-6 && et < 1e-6, "errors {eu:.2e} {et:.2e}");
 }
@@ -184,6 +190,7 @@ fn the_preconditioned_jump_certifies_where_the_lumped_force_floored() {
     let d = direct(&scene);
     let r = cg(&scene, 4, InterfaceScaling::default());
     assert_eq!(r.status, Status::Converged, "{:?}", r.stop_message);
+    assert!(!r.notes.iter().any(|n| n.contains("stiffness spread")), "{:?}", r.notes);
     let (eu, et) = errors(&r, &d);
     assert!(eu < 1e-8 && et < 1e-8, "errors {eu:.2e} {et:.2e}");
 
