@@ -275,10 +275,15 @@ impl DdSolver {
                         self.cg_true_force(ws, b_norm)
                     };
                     let floor = if jump < ROUNDOFF_JUMP && force > jump {
+                        let measure = if lumped {
+                            "the jump times the interface stiffness"
+                        } else {
+                            "the preconditioned jump"
+                        };
                         format!(
                             ": the jump is at round-off ({jump:.1e} of the displacement) but the interface force \
-                             error it stands for (the preconditioned jump) is {force:.1e} of the loads, a floor \
-                             set by the stiffness contrast and the subdomain solves' round-off"
+                             error it stands for ({measure}) is {force:.1e} of the loads, a floor set by the \
+                             stiffness contrast and the subdomain solves' round-off"
                         )
                     } else {
                         String::new()
