@@ -228,26 +228,15 @@ impl DdSolver {
             // Where the test would stop, its force part is measured on the
             // true jump (one more application of the preconditioner): the
             // recursive residual may have drifted below it.
-            converged = self.cg_stops(
-                ws,
-                indicator,
-                &energy_terms,
-                restarts,
-                &history[history.len() - (iterations - restart_at)..],
-            );
+            let since_restart = history.len() - (iterations - restart_at);
+            converged = self.cg_stops(ws, indicator, &energy_terms, restarts, &history[since_restart..]);
             if converged && !lumped {
                 indicator = indicator_of(jump, self.cg_true_force(ws, b_norm));
                 if let Some(last) = history.last_mut() {
                     last.indicator = indicator;
                     last.jump = Some(indicator);
                 }
-                converged = self.cg_stops(
-                    ws,
-                    indicator,
-                    &energy_terms,
-                    restarts,
-                    &history[history.len() - (iterations - restart_at)..],
-                );
+                converged = self.cg_stops(ws, indicator, &energy_terms, restarts, &history[since_restart..]);
             }
             if let Some(p) = progress.as_mut() {
                 p(iterations, indicator);
