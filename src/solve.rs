@@ -435,7 +435,7 @@ pub fn solve_in(
             ));
         }
         let spread = dd.stats().stiffness_spread;
-        if opts.method == Method::Cg && spread >= crate::cg_stopping::LUMPED_FORCE_SPREAD {
+        if opts.method == Method::Cg && dd.lumped_force() {
             notes.push(format!(
                 "cg: the stiffness spread is {spread:.1e} (largest over smallest stiffness diagonal): the \
                  indicator measures the force error by the stiffness-weighted jump, which is pessimistic \

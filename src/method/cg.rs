@@ -427,7 +427,7 @@ impl DdSolver {
     /// Whether the indicator's force part is the lumped force `k ∘ J V`
     /// (stiffness spread from [`cg_stopping::LUMPED_FORCE_SPREAD`] on)
     /// rather than the preconditioned jump.
-    fn lumped_force(&self) -> bool {
+    pub(crate) fn lumped_force(&self) -> bool {
         self.stats.stiffness_spread >= cg_stopping::LUMPED_FORCE_SPREAD
     }
 
