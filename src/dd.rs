@@ -354,8 +354,6 @@ pub(crate) struct IfaceState {
     pub(crate) p: Mat<f64>,
     pub(crate) macro_off: usize,
     pub(crate) jump_norm2: f64,
-    /// `‖(I − P Pᵀ) r‖²` of the last residual the preconditioner took.
-    pub(crate) projected_norm2: f64,
     /// Lumped interface stiffness `diag(K_lo) + diag(K_hi)` per entry: turns
     /// a jump into the force it leaves unbalanced.
     pub(crate) stiffness: Vec<f64>,
@@ -693,7 +691,6 @@ impl DdSolver {
                 p: Mat::zeros(0, 0),
                 macro_off: 0,
                 jump_norm2: 0.0,
-                projected_norm2: 0.0,
                 stiffness: Vec::new(),
                 force_norm2: 0.0,
             })

@@ -279,28 +279,25 @@ impl<C: Communicator> InterfaceOperator<C> {
         });
     }
 
-    /// `z = (I − P Pᵀ) Σ_E B_D,E S_E B_D,Eᵀ (I − P Pᵀ) r` (`B_D` the jump
-    /// operator scaled by the weights `w`, [`crate::scaling`]) with `S_E`
-    /// the Schur complement of the subdomain on its interface (Dirichlet:
-    /// the interface force that holds the displacement `Bᵀr` with the
-    /// interior free), or `K_E` itself on the interface dofs (lumped:
-    /// interior held at zero). `range(P)` is in the null space of the CG
-    /// operator (the coarse step absorbs it), so both projections are the
-    /// identity in exact arithmetic. In floating point the jump keeps a
-    /// macro part at the subdomain solves' round-off, which no choice of
-    /// forces reduces; once the rest of the residual has fallen below it,
-    /// the preconditioner would turn it into a search direction off the
-    /// macro space and CG would chase it (the 1e6-dof plate with the
-    /// adaptive macro space stalled at 2e-8 with 97 % of its residual
-    /// there). Left in `z`, round-off would grow in the null space and
-    /// break the iteration on long runs. CG's stopping test measures that
-    /// macro part separately ([`Self::macro_force_error`]).
+    /// `z = (I − P Pᵀ) Σ_E B_D,E S_E B_D,Eᵀ r` (`B_D` the jump operator
+    /// scaled by the weights `w`, [`crate::scaling`]) with `S_E` the Schur
+    /// complement of the subdomain on its interface (Dirichlet: the
+    /// interface force that holds the displacement `Bᵀr` with the interior
+    /// free), or `K_E` itself on the interface dofs (lumped: interior held
+    /// at zero), then the macro part removed. `range(P)` is in the null
+    /// space of the CG operator (the coarse step absorbs it); leaving it in
+    /// `z` lets round-off grow there and break the iteration on long runs.
+    /// The input keeps its macro part: projecting it too (the symmetric
+    /// `(I − P Pᵀ) M (I − P Pᵀ)`, the same in exact arithmetic) saved 2–28 %
+    /// of the iterations on contrast towers, but let the nonsmooth 5³ tower
+    /// on 27 subdomains claim 1e-8 with tensions 5.6e-8 off, where this
+    /// form ends 7e-11 off (BENCHMARKS.md, session 26). CG's stopping test
+    /// measures the jump's macro part through the coarse problem
+    /// ([`Self::macro_force_error`]).
     ///
     /// `w` are the pointwise weights of `B_D`; `deluxe` the dense weights of
     /// the faces that have them (they replace `w` there); `sl`, `sh` scratch
-    /// of the interface sizes (`B_D,loᵀ r`, `B_D,hiᵀ r`). Returns
-    /// `(‖(I − P Pᵀ) r‖², ‖r‖²)`: where the first is round-off against the
-    /// second, `z` is the preconditioned round-off and no search direction.
+    /// of the interface sizes (`B_D,loᵀ r`, `B_D,hiᵀ r`).
     pub fn precondition(
         &mut self,
         r: &[Vec<f64>],
@@ -309,22 +306,9 @@ impl<C: Communicator> InterfaceOperator<C> {
         sl: &mut [Vec<f64>],
         sh: &mut [Vec<f64>],
         z: &mut [Vec<f64>],
-    ) -> (f64, f64) {
-        // (I − P Pᵀ) r, in `z` until the result overwrites it.
-        z.par_iter_mut()
-            .zip(r.par_iter())
-            .zip(self.ifaces.par_iter_mut())
-            .for_each(|((cz, r), it)| {
-                cz.copy_from_slice(r);
-                remove_macro_part(cz, &it.p);
-                it.projected_norm2 = kernels::norm2(cz);
-            });
-        let [off, all] = self
-            .comm
-            .sum_interfaces(|i| [self.ifaces[i].projected_norm2, kernels::norm2(&r[i])]);
+    ) {
         // B_D,Eᵀ r on either side of each interface (interface vectors,
         // held by both sides: no communication).
-        let r = &*z;
         r.par_iter()
             .zip(w.par_iter())
             .zip(deluxe.par_iter_mut().zip(sl.par_iter_mut().zip(sh.par_iter_mut())))
@@ -412,7 +396,6 @@ impl<C: Communicator> InterfaceOperator<C> {
                 s.g[l as usize] = 0.0;
             }
         });
-        (off, all)
     }
 
     /// The energies of the CG stopping test ([`crate::cg_stopping`]) for
@@ -766,43 +749,6 @@ mod tests {
                 x
             })
             .collect()
-    }
-
-    /// The preconditioner is `(I − P Pᵀ) M (I − P Pᵀ)`: a macro part in its
-    /// input changes nothing (it is the coarse solves' round-off in a CG
-    /// residual, which no search direction can reduce), and its output has
-    /// none.
-    #[test]
-    fn the_preconditioner_ignores_the_macro_part_of_its_input() {
-        let mut set_up = solver();
-        let mut ws = set_up.cg.take().expect("a cg set-up has its workspace");
-        let mut op = set_up.op;
-        assert!(op.ifaces.iter().any(|it| it.p.ncols() > 0));
-        let r = interface_vectors(&op, 3);
-        let shifted: Vec<Vec<f64>> = r
-            .iter()
-            .zip(macro_vectors(&op, 1, 10.0))
-            .map(|(a, b)| a.iter().zip(&b).map(|(x, y)| x + y).collect())
-            .collect();
-        let (mut sl, mut sh) = (interface_vectors(&op, 0), interface_vectors(&op, 0));
-        let (mut za, mut zb) = (interface_vectors(&op, 0), interface_vectors(&op, 0));
-        op.precondition(&r, &ws.w, &mut ws.deluxe, &mut sl, &mut sh, &mut za);
-        op.precondition(&shifted, &ws.w, &mut ws.deluxe, &mut sl, &mut sh, &mut zb);
-        let norm = op.norm2(&za).sqrt();
-        assert!(norm > 0.0);
-        let diff: f64 = za
-            .iter()
-            .flatten()
-            .zip(zb.iter().flatten())
-            .map(|(a, b)| (a - b) * (a - b))
-            .sum();
-        assert!(
-            diff.sqrt() < 1e-12 * norm,
-            "macro input moved z by {:e} of {norm:e}",
-            diff.sqrt()
-        );
-        let (m2, _) = op.macro_part2(&za);
-        assert!(m2.sqrt() < 1e-12 * norm, "macro part {:e} in z", m2.sqrt());
     }
 
     /// The macro force error sees only the macro part of the jumps, and

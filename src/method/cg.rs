@@ -34,13 +34,6 @@ const CG_DRIFT: f64 = 0.5;
 /// floor the residual is noise and its macro part is half of it as often as
 /// not; a restart every iteration would only burn the restart budget.
 const CG_DRIFT_SPACING: usize = 10;
-/// The residual's part off the macro space below this fraction of the
-/// residual is round-off: the residual lies in the macro space, where only
-/// the coarse solve acts, and its preconditioned value is noise, no search
-/// direction (the README's tower with unilateral cables and `ea_cable =
-/// 1e-2` on 16 subdomains: 1e-15 in its last cable set, where cg then
-/// claimed 1e-8 with tensions 7.5e-8 off the direct solve's).
-const MACRO_ONLY_RESIDUAL: f64 = 1e-10;
 /// A jump below this fraction of the displacement is round-off (a few
 /// hundred ε): where the iteration stalls there, the message says so.
 const ROUNDOFF_JUMP: f64 = 1e-12;
@@ -151,7 +144,7 @@ impl DdSolver {
         }
         let b_norm = self.load_norm().max(f64::MIN_POSITIVE);
         let mut history = Vec::with_capacity(self.opts.max_iterations.min(100_000));
-        let (mut rz, mut macro_only) = self.cg_start(ws);
+        let mut rz = self.cg_start(ws);
         let mut converged = !self.op.has_interfaces() || self.cg_true_indicator(ws, b_norm) == 0.0;
         if converged {
             history.push(HistoryEntry {
@@ -170,28 +163,6 @@ impl DdSolver {
         // How the loop ended when not by the stopping test or the limit.
         let mut ended: Option<(Status, String)> = None;
         while !converged && iterations < self.opts.max_iterations {
-            if macro_only {
-                // Nothing left for CG: the iterate is what the coarse solve
-                // makes of it. Its indicator on the true jump decides.
-                let indicator = self.cg_true_indicator(ws, b_norm);
-                match history.last_mut() {
-                    Some(last) if iterations > 0 => {
-                        last.indicator = indicator;
-                        last.jump = Some(indicator);
-                    }
-                    _ => history.push(cg_entry(iterations, t0, indicator)),
-                }
-                converged = indicator <= self.opts.tolerance;
-                if !converged {
-                    ended = Some((
-                        Status::Breakdown,
-                        "the residual lies in the macro space up to round-off (the coarse solve acts there, CG \
-                         cannot)"
-                            .into(),
-                    ));
-                }
-                break;
-            }
             iterations += 1;
             // q = A p = −J V_hom(p): the homogeneous global step with F = p
             // (V_hom(p) is left in the subdomains' `v`, `jump` = J V_hom(p)).
@@ -241,7 +212,8 @@ impl DdSolver {
             // The indicator: the true jump of the iterate, and as a force the
             // preconditioned residual, which the next direction needs anyway.
             let (jump, monitor) = self.cg_jump(ws, b_norm);
-            macro_only = self.cg_precondition(ws);
+            self.op
+                .precondition(&ws.r, &ws.w, &mut ws.deluxe, &mut ws.sl, &mut ws.sh, &mut ws.z);
             let lumped = self.lumped_force();
             let mut indicator = if lumped {
                 monitor
@@ -332,7 +304,7 @@ impl DdSolver {
                 restarts += 1;
                 restart_at = iterations;
                 energy_terms.reset();
-                (rz, macro_only) = self.cg_start(ws);
+                rz = self.cg_start(ws);
                 best = f64::INFINITY;
                 continue;
             }
@@ -374,9 +346,8 @@ impl DdSolver {
     }
 
     /// (Re)starts CG from the current forces: `V = V(F)` by a global step,
-    /// `r = J V`, `z = M r`, `p = z`. Returns `⟨r, z⟩` and whether the
-    /// residual lies in the macro space ([`Self::cg_precondition`]).
-    fn cg_start(&mut self, ws: &mut CgWorkspace) -> (f64, bool) {
+    /// `r = J V`, `z = M r`, `p = z`. Returns `⟨r, z⟩`.
+    fn cg_start(&mut self, ws: &mut CgWorkspace) -> f64 {
         self.op.apply(&self.forces, false, true);
         for (cv, s) in ws.v.iter_mut().zip(&self.op.subs) {
             cv.copy_from_slice(&s.v);
@@ -384,20 +355,12 @@ impl DdSolver {
         for (cr, it) in ws.r.iter_mut().zip(&self.op.ifaces) {
             cr.copy_from_slice(&it.jump);
         }
-        let macro_only = self.cg_precondition(ws);
+        self.op
+            .precondition(&ws.r, &ws.w, &mut ws.deluxe, &mut ws.sl, &mut ws.sh, &mut ws.z);
         for (cp, cz) in ws.p.iter_mut().zip(&ws.z) {
             cp.copy_from_slice(cz);
         }
-        (self.op.dot(&ws.r, &ws.z), macro_only)
-    }
-
-    /// `z = M r`; whether `r` lies in the macro space up to round-off
-    /// ([`MACRO_ONLY_RESIDUAL`]), where `z` is noise.
-    fn cg_precondition(&mut self, ws: &mut CgWorkspace) -> bool {
-        let (off, all) = self
-            .op
-            .precondition(&ws.r, &ws.w, &mut ws.deluxe, &mut ws.sl, &mut ws.sh, &mut ws.z);
-        !(off.sqrt() > MACRO_ONLY_RESIDUAL * all.sqrt())
+        self.op.dot(&ws.r, &ws.z)
     }
 
     /// The jump part of the indicator: `‖J V‖` of the CG iterate
