@@ -56,6 +56,17 @@ fn jump_of(it: &mut IfaceState, lo: &[f64], hi: &[f64]) {
     it.force_norm2 = it.jump.iter().zip(&it.stiffness).map(|(j, k)| (j * k) * (j * k)).sum();
 }
 
+/// The coarse solve whose right-hand side the subdomains hold in their
+/// scratch: macro values `zt_r` at their `macro_cols`, kernel part `rt_r`.
+fn coarse_solve_from_subdomains<C: Communicator>(comm: &C, coarse: &mut CoarseProblem, subs: &[SubState]) {
+    comm.coarse_solve(coarse, |s| CoarseRhsPart {
+        macro_cols: &subs[s].macro_cols,
+        macro_values: &subs[s].zt_r,
+        kernel_off: subs[s].alpha_off,
+        kernel: &subs[s].rt_r,
+    });
+}
+
 /// `x ← (I − P Pᵀ) x` for an interface block `P` with orthonormal columns.
 fn remove_macro_part(x: &mut [f64], p: &faer::Mat<f64>) {
     for q in 0..p.ncols() {
@@ -175,13 +186,7 @@ impl<C: Communicator> InterfaceOperator<C> {
                 }
             });
         }
-        let subs = &self.subs;
-        self.comm.coarse_solve(coarse, |s| CoarseRhsPart {
-            macro_cols: &subs[s].macro_cols,
-            macro_values: &subs[s].zt_r,
-            kernel_off: subs[s].alpha_off,
-            kernel: &subs[s].rt_r,
-        });
+        coarse_solve_from_subdomains(&self.comm, coarse, &self.subs);
         let coarse = &*coarse;
         self.subs.par_iter_mut().for_each(|s| {
             let f = coarse.macro_forces();
@@ -494,13 +499,7 @@ impl<C: Communicator> InterfaceOperator<C> {
                 }
             }
         });
-        let subs = &self.subs;
-        self.comm.coarse_solve(coarse, |s| CoarseRhsPart {
-            macro_cols: &subs[s].macro_cols,
-            macro_values: &subs[s].zt_r,
-            kernel_off: subs[s].alpha_off,
-            kernel: &subs[s].rt_r,
-        });
+        coarse_solve_from_subdomains(&self.comm, coarse, &self.subs);
         kernels::norm2(coarse.macro_forces()).sqrt()
     }
 
