@@ -720,9 +720,9 @@ mod tests {
         );
     }
 
-    /// Interface vectors of the operator's sizes from a seed.
-    fn interface_vectors(op: &InterfaceOperator<crate::comm::Seam>, seed: usize) -> Vec<Vec<f64>> {
-        op.interface_sizes()
+    /// Interface vectors of the given sizes from a seed.
+    fn interface_vectors(sizes: impl Iterator<Item = usize>, seed: usize) -> Vec<Vec<f64>> {
+        sizes
             .enumerate()
             .map(|(i, n)| {
                 (0..n)
@@ -770,7 +770,7 @@ mod tests {
         let two = op.macro_force_error();
         assert!((two - 2.0 * one).abs() < 1e-10 * one, "{two:e} against 2 × {one:e}");
         // A jump without macro part: no macro force, whatever its size.
-        let mut rest = interface_vectors(&op, 5);
+        let mut rest = interface_vectors(op.interface_sizes(), 5);
         for (x, it) in rest.iter_mut().zip(&op.ifaces) {
             remove_macro_part(x, &it.p);
         }
@@ -808,17 +808,7 @@ mod tests {
         };
         assert!(local.coarse.is_some() && local.ifaces.len() > 4);
         let sizes: Vec<usize> = local.interface_sizes().collect();
-        let vec_of = |seed: usize| -> Vec<Vec<f64>> {
-            sizes
-                .iter()
-                .enumerate()
-                .map(|(i, &n)| {
-                    (0..n)
-                        .map(|j| ((i * 31 + j * 7 + seed) % 13) as f64 / 13.0 - 0.4)
-                        .collect()
-                })
-                .collect()
-        };
+        let vec_of = |seed: usize| interface_vectors(sizes.iter().copied(), seed);
         for (a, b) in local.subs.iter_mut().zip(ghost.subs.iter_mut()) {
             for (l, (x, y)) in a.b.iter_mut().zip(b.b.iter_mut()).enumerate() {
                 *x = (l % 5) as f64 - 2.0;
