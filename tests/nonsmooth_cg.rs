@@ -565,9 +565,12 @@ fn contrast_1e8_claims_no_tolerance_it_misses() {
 /// interfaces, and those nearly all in the macro space. While cg's stopping
 /// test measured the jump's macro part by the preconditioner, it claimed
 /// 1e-8 with tensions 3.2e-7 off the direct solve's; measured through the
-/// coarse problem, the solve ends `stalled` at 7e-8 with tensions 1.2e-8
+/// coarse problem, the solve ended `stalled` at 7e-8 with tensions 1.2e-8
 /// off (the scene's AMD and nested-dissection direct solves differ by
-/// 2.9e-8). A claim must hold to about that spread.
+/// 2.9e-8). The stall was the macro part of the jump that each (re)start's
+/// loaded global step leaves at the round-off of the whole load's macro
+/// forces; with the coarse correction there it converges (5 iterations,
+/// tensions 1.2e-8 off). A claim must hold to about the direct spread.
 #[test]
 fn contrast_1e6_on_macro_covered_interfaces_claims_nothing_it_misses() {
     let scene = tower(&TowerParams {
@@ -580,8 +583,8 @@ fn contrast_1e6_on_macro_covered_interfaces_claims_nothing_it_misses() {
     let direct = solve(&scene, &opts(Method::Direct, 1, 1e-8)).expect("direct solve");
     let cg = solve(&scene, &opts(Method::Cg, 16, 1e-8)).expect("cg solve");
     let et = rel_err(&cg.tensions, &direct.tensions);
-    assert!(!cg.converged || et <= 3e-8, "claimed 1e-8 with tension error {et:.2e}");
-    assert!(et <= 1e-7, "tension error {et:.2e} ({:?})", cg.status);
+    assert!(cg.converged, "{:?} after {} iterations", cg.status, cg.iterations);
+    assert!(et <= 3e-8, "claimed 1e-8 with tension error {et:.2e}");
 }
 
 /// The nonsmooth 5³ tower on 27 subdomains (small subdomains, interfaces

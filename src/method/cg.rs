@@ -345,10 +345,15 @@ impl DdSolver {
         }
     }
 
-    /// (Re)starts CG from the current forces: `V = V(F)` by a global step,
+    /// (Re)starts CG from the current forces: `V = V(F)` by a global step
+    /// and a coarse correction
+    /// ([`InterfaceOperator::correct_macro_part`](crate::operator::InterfaceOperator::correct_macro_part)),
     /// `r = J V`, `z = M r`, `p = z`. Returns `⟨r, z⟩`.
     fn cg_start(&mut self, ws: &mut CgWorkspace) -> f64 {
         self.op.apply(&self.forces, false, true);
+        // The loaded step's macro part is round-off of the whole load's
+        // macro forces, out of CG's reach: one more coarse step removes it.
+        self.op.correct_macro_part();
         for (cv, s) in ws.v.iter_mut().zip(&self.op.subs) {
             cv.copy_from_slice(&s.v);
         }
