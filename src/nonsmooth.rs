@@ -487,6 +487,11 @@ impl NonsmoothCg {
         self.opts.max_iterations
     }
 
+    /// The tolerance the solve is asked for.
+    pub fn tolerance(&self) -> f64 {
+        self.opts.tolerance
+    }
+
     /// The decomposition every slack set is solved on.
     pub fn decomposition(&self) -> &Decomposition {
         &self.dec
