@@ -58,6 +58,12 @@ static void solve_truss(NsddScene *scene, const NsddOptions *opts, double fy, do
     uint32_t why = 0;
     check_status(nsdd_result_stop_reason(res, &why), "nsdd_result_stop_reason");
     if ((why == NSDD_STOP_REASON_CONVERGED) != converged) failures++;
+    /* How far the tensions miss equilibrium with the loads (relative to
+       their norm): a converged solve holds it within its tolerance. */
+    double eq = 0.0;
+    check_status(nsdd_result_equilibrium_residual(res, &eq), "nsdd_result_equilibrium_residual");
+    printf("  tensions off the loads by %.2e of their norm\n", eq);
+    if (converged && !(eq <= 1e-6)) failures++;
     double *u = malloc(3 * nn * sizeof(double));
     check_status(nsdd_result_displacements(res, u, 3 * nn), "nsdd_result_displacements");
     check_status(nsdd_result_tensions(res, t, ne), "nsdd_result_tensions");

@@ -733,6 +733,17 @@ enum NsddStatus nsdd_result_iterations(const struct NsddResult *result, size_t *
 enum NsddStatus nsdd_result_converged(const struct NsddResult *result, bool *out);
 
 /**
+ * How far the top-level tensions miss equilibrium with the loads,
+ * `‖f − Σ_e H_e t_e‖ / ‖t‖` at the free dofs, into `*out`; NaN where it
+ * is not measured (transverse geometric stiffness, no load). An
+ * iterative solve is converged only with this at or below its tolerance.
+ *
+ * # Safety
+ * `result` must be a live result handle; `out` must point to a writable `double`.
+ */
+enum NsddStatus nsdd_result_equilibrium_residual(const struct NsddResult *result, double *out);
+
+/**
  * Why the run stopped, as an `NsddStopReason` value, into `*out`: for
  * an unconverged result, the first solve (load-path steps, the top level,
  * the load cases) that did not converge says why.

@@ -102,6 +102,9 @@ pub fn summary(scene: &Scene, r: &SolveResult) -> String {
         let _ = write!(s, ", final indicator {ind:.3e}");
     }
     let _ = writeln!(s, ")");
+    if let Some(e) = r.equilibrium_residual {
+        let _ = writeln!(s, "equilibrium tensions off the loads by {e:.3e} of their norm");
+    }
     let _ = writeln!(
         s,
         "time        setup {:.4} s, solve {:.4} s, total {:.4} s",

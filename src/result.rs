@@ -109,6 +109,12 @@ pub struct SolveResult {
     /// for nonsmooth cg, whose set-ups repeat per cable set).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub factors: Option<FactorSizes>,
+    /// How far the top-level tensions miss equilibrium with its loads,
+    /// `‖f − Σ_e H_e t_e‖ / ‖t‖` at the free dofs (nsdd addition; absent
+    /// with transverse geometric stiffness or without load). A DD solve is
+    /// `converged` only with this at or below its tolerance.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub equilibrium_residual: Option<f64>,
 }
 
 /// The sparse Cholesky factors of a solve: the whole structure's (direct),

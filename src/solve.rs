@@ -370,6 +370,8 @@ pub fn solve_in(
     // and the result carries the diverged state with its history.
     let mut diverged = false;
     let mut step_status = Vec::new();
+    // The load factor of the top-level solve (the last load-path step run).
+    let mut top_factor = 1.0;
     if let Some(path) = &scene.load_path {
         for k in 1..=path.steps {
             let factor = path.final_factor * k as f64 / path.steps as f64;
@@ -390,6 +392,7 @@ pub fn solve_in(
             diverged = st.status == Status::Diverged;
             step_status.push((st.status, st.message.clone()));
             top = Some(st);
+            top_factor = factor;
             if diverged {
                 break;
             }
@@ -418,6 +421,8 @@ pub fn solve_in(
     }
     let top = top.expect("at least one solve");
     let main = case_result(&model, "loads", 1.0, &top, slack_threshold(opts));
+    let f_top: Vec<f64> = model.load_cases[0].iter().map(|v| v * top_factor).collect();
+    let equilibrium_residual = model.equilibrium_residual(&f_top, &main.tensions);
     let (n_sub, element_subdomain) = match &prepared {
         Prepared::Direct(_) => (1, Vec::new()),
         Prepared::Dd(_, dec) => (dec.len(), dec.partition.part_of.clone()),
@@ -523,6 +528,7 @@ pub fn solve_in(
     };
     Ok(SolveResult {
         factors,
+        equilibrium_residual,
         scene: model.name.clone(),
         method: opts.method.name().to_string(),
         effects: model.effects.names().into_iter().map(String::from).collect(),

@@ -652,6 +652,19 @@ fn result_getters_check_lengths() {
         ok(nsdd_result_converged(r, &mut conv));
         assert_eq!((nn, ne), (3, 2));
         assert!(conv && hl >= 1);
+        let mut eq = f64::NAN;
+        ok(nsdd_result_equilibrium_residual(r, &mut eq));
+        assert!(eq < 1e-12, "equilibrium residual {eq:e}");
+        expect_err(
+            nsdd_result_equilibrium_residual(null(), &mut eq),
+            NsddStatus::NullPointer,
+            "result",
+        );
+        expect_err(
+            nsdd_result_equilibrium_residual(r, null_mut()),
+            NsddStatus::NullPointer,
+            "out",
+        );
         for st in [
             nsdd_result_num_nodes(null(), &mut nn),
             nsdd_result_num_elements(null(), &mut ne),

@@ -783,6 +783,21 @@ pub unsafe extern "C" fn nsdd_result_converged(result: *const NsddResult, out: *
     })
 }
 
+/// How far the top-level tensions miss equilibrium with the loads,
+/// `‖f − Σ_e H_e t_e‖ / ‖t‖` at the free dofs, into `*out`; NaN where it
+/// is not measured (transverse geometric stiffness, no load). An
+/// iterative solve is converged only with this at or below its tolerance.
+///
+/// # Safety
+/// `result` must be a live result handle; `out` must point to a writable `double`.
+#[unsafe(no_mangle)]
+pub unsafe extern "C" fn nsdd_result_equilibrium_residual(result: *const NsddResult, out: *mut f64) -> NsddStatus {
+    ffi_guard(|| {
+        let r = unsafe { handle(result, "result")? };
+        unsafe { write_out(out, "out", r.result.equilibrium_residual.unwrap_or(f64::NAN)) }
+    })
+}
+
 /// Why the run stopped, as an `NsddStopReason` value, into `*out`: for
 /// an unconverged result, the first solve (load-path steps, the top level,
 /// the load cases) that did not converge says why.
