@@ -294,7 +294,7 @@ fn check_equilibrium(model: &Model, f_ext: &[f64], out: &mut Outcome, tolerance:
     let Some(elongations) = &out.elongations else {
         return;
     };
-    let slack = model.slack_flags(&out.u, &out.lambda, 10.0 * tolerance);
+    let slack = model.slack_flags(&out.u, &out.lambda, iterative_slack_threshold(tolerance));
     let tensions = model.tensions_from_elongations(elongations, &slack);
     let Some(r) = model.equilibrium_residual(f_ext, &tensions) else {
         return;
@@ -316,8 +316,13 @@ fn check_equilibrium(model: &Model, f_ext: &[f64], out: &mut Outcome, tolerance:
 fn slack_threshold(opts: &SolveOptions) -> f64 {
     match opts.method {
         Method::Direct => 1e-12,
-        _ => 10.0 * opts.tolerance,
+        _ => iterative_slack_threshold(opts.tolerance),
     }
+}
+
+/// [`slack_threshold`] of an iterative method asked for `tolerance`.
+fn iterative_slack_threshold(tolerance: f64) -> f64 {
+    10.0 * tolerance
 }
 
 fn case_result(model: &Model, name: &str, load_factor: f64, st: &Outcome, slack_rel: f64) -> CaseResult {
