@@ -67,6 +67,40 @@ fn coarse_solve_from_subdomains<C: Communicator>(comm: &C, coarse: &mut CoarsePr
     });
 }
 
+/// The subdomain's part of the last coarse solution: its macro forces
+/// `fm` (one per macro column it touches) and its kernel amplitudes `α`.
+fn take_coarse_solution(s: &mut SubState, coarse: &CoarseProblem) {
+    let f = coarse.macro_forces();
+    for (k, &c) in s.macro_cols.iter().enumerate() {
+        s.fm[k] = f[c];
+    }
+    let na = s.alpha.len();
+    s.alpha
+        .copy_from_slice(&coarse.kernel_amplitudes()[s.alpha_off..s.alpha_off + na]);
+}
+
+/// `r_E −= W_E f_E` on the interface dofs (`W_E` is zero elsewhere): the
+/// macro forces into a right-hand side before the solve.
+fn subtract_macro_forces(s: &mut SubState) {
+    for (k, &fk) in s.fm.iter().enumerate() {
+        if fk != 0.0 {
+            for (&l, w) in s.iface_dofs.iter().zip(s.w_iface.col(k).iter()) {
+                s.r[l as usize] -= w * fk;
+            }
+        }
+    }
+}
+
+/// `v_E += R_E α_E`: the kernel motion the coarse step gives the subdomain.
+fn add_kernel_motion(s: &mut SubState) {
+    let r = s.op.kernel();
+    for (q, &a) in s.alpha.iter().enumerate() {
+        for (v, rq) in s.v.iter_mut().zip(r.col(q).iter()) {
+            *v += rq * a;
+        }
+    }
+}
+
 /// The coarse right-hand side `(Pᵀ J V, 0)` of the last jumps in the
 /// subdomains' scratch (`zt_r`, `rt_r`): each interface's part once, from
 /// its lo side (the coarse assembly sums the subdomains' parts).
@@ -216,21 +250,9 @@ impl<C: Communicator> InterfaceOperator<C> {
         coarse_solve_from_subdomains(&self.comm, coarse, &self.subs);
         let coarse = &*coarse;
         self.subs.par_iter_mut().for_each(|s| {
-            let f = coarse.macro_forces();
-            for (k, &c) in s.macro_cols.iter().enumerate() {
-                s.fm[k] = f[c];
-            }
-            let na = s.alpha.len();
-            s.alpha
-                .copy_from_slice(&coarse.kernel_amplitudes()[s.alpha_off..s.alpha_off + na]);
+            take_coarse_solution(s, coarse);
             if before {
-                for (k, &fk) in s.fm.iter().enumerate() {
-                    if fk != 0.0 {
-                        for (&l, w) in s.iface_dofs.iter().zip(s.w_iface.col(k).iter()) {
-                            s.r[l as usize] -= w * fk;
-                        }
-                    }
-                }
+                subtract_macro_forces(s);
                 s.v.copy_from_slice(&s.r);
                 s.op.solve_in_place(&mut s.v);
             } else {
@@ -243,12 +265,7 @@ impl<C: Communicator> InterfaceOperator<C> {
                     }
                 }
             }
-            let r = s.op.kernel();
-            for (q, &a) in s.alpha.iter().enumerate() {
-                for (v, rq) in s.v.iter_mut().zip(r.col(q).iter()) {
-                    *v += rq * a;
-                }
-            }
+            add_kernel_motion(s);
             s.v_norm2 = kernels::norm2(&s.v);
         });
     }
@@ -536,27 +553,14 @@ impl<C: Communicator> InterfaceOperator<C> {
         coarse_solve_from_subdomains(&self.comm, coarse, &self.subs);
         let coarse = &*coarse;
         self.subs.par_iter_mut().for_each(|s| {
-            let f = coarse.macro_forces();
+            take_coarse_solution(s, coarse);
             s.r.iter_mut().for_each(|x| *x = 0.0);
-            for (k, &c) in s.macro_cols.iter().enumerate() {
-                let fk = f[c];
-                if fk != 0.0 {
-                    for (&l, w) in s.iface_dofs.iter().zip(s.w_iface.col(k).iter()) {
-                        s.r[l as usize] -= w * fk;
-                    }
-                }
-            }
+            subtract_macro_forces(s);
             s.op.solve_in_place(&mut s.r);
             for (v, &d) in s.v.iter_mut().zip(&s.r) {
                 *v += d;
             }
-            let a = &coarse.kernel_amplitudes()[s.alpha_off..s.alpha_off + s.alpha.len()];
-            let r = s.op.kernel();
-            for (q, &a) in a.iter().enumerate() {
-                for (v, rq) in s.v.iter_mut().zip(r.col(q).iter()) {
-                    *v += rq * a;
-                }
-            }
+            add_kernel_motion(s);
             s.v_norm2 = kernels::norm2(&s.v);
         });
         self.jumps(None);
