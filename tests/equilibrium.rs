@@ -2,6 +2,9 @@
 //! the scene's own elements, loads and supports, and the rule that a DD
 //! solve claims its tolerance only with the tensions in equilibrium.
 
+mod common;
+
+use common::rel_err;
 use nsdd::generate::{tower, TowerParams};
 use nsdd::scene::Scene;
 use nsdd::settings::Method;
@@ -78,12 +81,6 @@ fn the_reported_equilibrium_residual_is_the_scenes_own() {
             assert!(mine <= 1e-8, "{method:?}/{subdomains} claimed 1e-8 at {mine:e}");
         }
     }
-}
-
-fn rel_err(a: &[f64], b: &[f64]) -> f64 {
-    let d: f64 = a.iter().zip(b).map(|(x, y)| (x - y) * (x - y)).sum();
-    let n: f64 = b.iter().map(|y| y * y).sum();
-    (d / n).sqrt()
 }
 
 /// The 12³ contrast tower (bars 1e4 × the cables) on 16 subdomains asked
