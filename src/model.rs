@@ -279,14 +279,12 @@ impl Model {
     pub fn elongation_by(&self, e: usize, u: impl Fn(usize) -> f64) -> f64 {
         let dofs = self.element_dofs(e);
         let n = self.elements[e].dir;
+        // Differences first: `u_b − u_a` is exact-rounded however large the
+        // displacements, where `n·u_b − n·u_a` loses `ε |u|` to cancellation.
+        let at = |d: usize| if d == FIXED { 0.0 } else { u(d) };
         let mut s = 0.0;
         for d in 0..3 {
-            if dofs[3 + d] != FIXED {
-                s += n[d] * u(dofs[3 + d]);
-            }
-            if dofs[d] != FIXED {
-                s -= n[d] * u(dofs[d]);
-            }
+            s += n[d] * (at(dofs[3 + d]) - at(dofs[d]));
         }
         s
     }
@@ -363,6 +361,13 @@ impl Model {
     /// scenes, 1.6e-9 at a stiffness contrast of 1e6). `None` where equilibrium is not a matter of tensions alone
     /// (transverse geometric stiffness) or nothing is loaded.
     pub fn equilibrium_residual(&self, f_ext: &[f64], tensions: &[f64]) -> Option<f64> {
+        self.unbalanced_forces(f_ext, tensions).map(|(_, r)| r)
+    }
+
+    /// The nodal forces `f_ext − Σ_e H_e t_e` the tensions leave
+    /// unbalanced (free dofs), with their relative size as in
+    /// [`Self::equilibrium_residual`].
+    pub fn unbalanced_forces(&self, f_ext: &[f64], tensions: &[f64]) -> Option<(Vec<f64>, f64)> {
         if self.elements.iter().any(|el| el.geo != 0.0) {
             return None;
         }
@@ -372,7 +377,7 @@ impl Model {
         }
         let t_norm = tensions.iter().map(|t| t * t).sum::<f64>().sqrt();
         let r_norm = r.iter().map(|v| v * v).sum::<f64>().sqrt();
-        (t_norm > 0.0 && r_norm.is_finite()).then(|| r_norm / t_norm)
+        (t_norm > 0.0 && r_norm.is_finite()).then(|| (r, r_norm / t_norm))
     }
 
     /// Tensions from displacements and cable slacks (λ indexed like `cables`):
