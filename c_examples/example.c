@@ -62,7 +62,11 @@ static void solve_truss(NsddScene *scene, const NsddOptions *opts, double fy, do
        their norm): a converged solve holds it within its tolerance. */
     double eq = 0.0;
     check_status(nsdd_result_equilibrium_residual(res, &eq), "nsdd_result_equilibrium_residual");
-    printf("  tensions off the loads by %.2e of their norm\n", eq);
+    size_t corrections = 0, correction_iters = 0;
+    check_status(nsdd_result_equilibrium_corrections(res, &corrections, &correction_iters),
+                 "nsdd_result_equilibrium_corrections");
+    printf("  tensions off the loads by %.2e of their norm (%zu equilibrium corrections, %zu iterations)\n", eq,
+           corrections, correction_iters);
     if (converged && !(eq <= 1e-6)) failures++;
     double *u = malloc(3 * nn * sizeof(double));
     check_status(nsdd_result_displacements(res, u, 3 * nn), "nsdd_result_displacements");

@@ -744,6 +744,22 @@ enum NsddStatus nsdd_result_converged(const struct NsddResult *result, bool *out
 enum NsddStatus nsdd_result_equilibrium_residual(const struct NsddResult *result, double *out);
 
 /**
+ * The equilibrium corrections of an iterative solve (its tensions left
+ * the loads unbalanced by more than half the tolerance, and corrections
+ * for those loads were solved on the same set-up and added) into
+ * `*corrections`, and the iterations they took, included in
+ * `nsdd_result_iterations`, into `*iterations`; both 0 when none was
+ * needed.
+ *
+ * # Safety
+ * `result` must be a live result handle; `corrections` and `iterations`
+ * must point to writable `size_t`s.
+ */
+enum NsddStatus nsdd_result_equilibrium_corrections(const struct NsddResult *result,
+                                                    size_t *corrections,
+                                                    size_t *iterations);
+
+/**
  * Why the run stopped, as an `NsddStopReason` value, into `*out`: for
  * an unconverged result, the first solve (load-path steps, the top level,
  * the load cases) that did not converge says why.

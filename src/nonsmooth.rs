@@ -44,13 +44,13 @@
 //! factorization of the coarse problem itself.
 
 use crate::comm::Placement;
-use crate::dd::{DdOptions, DdSolver, PooledSubdomain};
+use crate::dd::{DdOptions, DdSolver, PooledSubdomain, Refined};
 use crate::decomposition::Decomposition;
 use crate::direct::Equilibrium;
 use crate::error::{Error, Result};
 use crate::model::Model;
 use crate::model::FIXED;
-use crate::outcome::Status;
+use crate::outcome::{Refinement, Status};
 use crate::partition::Partition;
 use crate::result::HistoryEntry;
 use crate::scaling::InterfaceScaling;
@@ -223,6 +223,9 @@ pub struct NonsmoothOutcome {
     /// Why the solve stopped short, if it did: the last inner solve's
     /// reason, or a cable set that did not settle ([`UNSETTLED_STEPS`]).
     pub message: Option<String>,
+    /// The iterative refinement of the settled set's solve, if it needed
+    /// one (see [`crate::outcome::Outcome::refinement`]).
+    pub refinement: Option<Refinement>,
 }
 
 /// The set-up of the nonsmooth CG: the decomposition, and the DD solver of
@@ -884,8 +887,47 @@ impl NonsmoothCg {
                 if soft {
                     return Err(Error::Mechanism(mechanism.unwrap_or_default()));
                 }
+                let mut elongations = self.local_elongations(model, &u);
+                let mut u = u;
+                let mut refinement = None;
+                if inner_converged {
+                    if let (Some(el), Some(step)) = (elongations.as_mut(), self.current.as_mut()) {
+                        // The settled set's structure is linear: refine it
+                        // as a linear solve (its slack cables carry nothing).
+                        let mut slack_element = vec![false; model.elements.len()];
+                        for (c, &e) in model.cables.iter().enumerate() {
+                            slack_element[e] = slack[c];
+                        }
+                        let tension = |e: usize, x: f64| {
+                            let el = &model.elements[e];
+                            if slack_element[e] {
+                                0.0
+                            } else {
+                                el.k * (x + el.e0)
+                            }
+                        };
+                        let dec = step.dec.as_ref().unwrap_or(&self.dec);
+                        refinement = step.dd.refine_equilibrium(
+                            model,
+                            dec,
+                            step.elements.as_deref(),
+                            f_ext,
+                            &tension,
+                            Refined {
+                                u: &mut u,
+                                elongations: el,
+                                history: &mut history,
+                                iterations: &mut total,
+                            },
+                        )?;
+                        if refinement.is_some() {
+                            for (c, &e) in model.cables.iter().enumerate() {
+                                g[c] = el[e] + model.elements[e].e0;
+                            }
+                        }
+                    }
+                }
                 let lambda = (0..nc).map(|c| if slack[c] { (-g[c]).max(0.0) } else { 0.0 }).collect();
-                let elongations = self.local_elongations(model, &u);
                 self.settled = Some(slack);
                 return Ok(NonsmoothOutcome {
                     equilibrium: Equilibrium {
@@ -904,6 +946,7 @@ impl NonsmoothCg {
                     coarse_blocks_reused: self.pool.coarse_blocks_reused,
                     elongations,
                     message: inner_message,
+                    refinement,
                 });
             }
             let budget_spent = !inner_converged && total >= self.opts.max_iterations;
@@ -939,6 +982,7 @@ impl NonsmoothCg {
                     coarse_blocks_reused: self.pool.coarse_blocks_reused,
                     elongations,
                     message,
+                    refinement: None,
                 });
             }
             if !murty && !seen.insert(slack.clone()) {

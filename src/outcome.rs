@@ -84,6 +84,24 @@ pub struct Outcome {
     /// stiffness contrast a round-off jump of 1e-13 ‖u‖ there becomes a
     /// tension error of 1e-4 in the stiff bars beside it.
     pub elongations: Option<Vec<f64>>,
+    /// The iterative refinement a linear DD solve took to bring its
+    /// tensions into equilibrium with the loads (`None`: none was needed or
+    /// the method has none).
+    pub refinement: Option<Refinement>,
+}
+
+/// Iterative refinement of a linear DD solve: corrections solved for the
+/// loads the tensions left unbalanced, on the same set-up. In the result
+/// JSON as `equilibrium_refinement`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Refinement {
+    /// Corrections solved.
+    pub corrections: usize,
+    /// Iterations the corrections took (included in the outcome's).
+    pub iterations: usize,
+    /// The equilibrium residual before the first correction
+    /// (see [`crate::model::Model::equilibrium_residual`]).
+    pub residual_before: f64,
 }
 
 impl Outcome {

@@ -103,7 +103,18 @@ pub fn summary(scene: &Scene, r: &SolveResult) -> String {
     }
     let _ = writeln!(s, ")");
     if let Some(e) = r.equilibrium_residual {
-        let _ = writeln!(s, "equilibrium tensions off the loads by {e:.3e} of their norm");
+        let _ = write!(s, "equilibrium tensions off the loads by {e:.3e} of their norm");
+        if let Some(rf) = r.equilibrium_refinement {
+            let _ = write!(
+                s,
+                " ({:.1e} before {} correction{}, {} of the iterations)",
+                rf.residual_before,
+                rf.corrections,
+                if rf.corrections == 1 { "" } else { "s" },
+                rf.iterations
+            );
+        }
+        let _ = writeln!(s);
     }
     let _ = writeln!(
         s,

@@ -115,6 +115,12 @@ pub struct SolveResult {
     /// `converged` only with this at or below its tolerance.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub equilibrium_residual: Option<f64>,
+    /// The corrections a DD solve of the top level took to bring its
+    /// tensions into equilibrium (nsdd addition; absent when none were
+    /// needed): `corrections`, their `iterations` (included in
+    /// `iterations`) and the `residual_before` them.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub equilibrium_refinement: Option<crate::outcome::Refinement>,
 }
 
 /// The sparse Cholesky factors of a solve: the whole structure's (direct),

@@ -29,7 +29,7 @@
 //! ```
 
 use crate::comm::Placement;
-use crate::dd::{DdOptions, DdSolver};
+use crate::dd::{DdOptions, DdSolver, Refined};
 use crate::decomposition::Decomposition;
 use crate::direct::DirectSolver;
 use crate::error::Result;
@@ -200,11 +200,31 @@ impl Prepared {
                     search_direction: None,
                     outer_steps: None,
                     elongations: None,
+                    refinement: None,
                 })
             }
             Prepared::Dd(dd, dec) => {
                 let mut out = dd.solve(f_ext, warm, progress)?;
                 out.elongations = Some(dd.element_elongations(model, dec));
+                if model.cables.is_empty() && out.status == Status::Converged {
+                    let (u, history) = (&mut out.u, &mut out.history);
+                    if let Some(elongations) = out.elongations.as_mut() {
+                        let tension = |e: usize, x: f64| model.elements[e].k * (x + model.elements[e].e0);
+                        out.refinement = dd.refine_equilibrium(
+                            model,
+                            dec,
+                            None,
+                            f_ext,
+                            &tension,
+                            Refined {
+                                u,
+                                elongations,
+                                history,
+                                iterations: &mut out.iterations,
+                            },
+                        )?;
+                    }
+                }
                 check_equilibrium(model, f_ext, &mut out, dd.opts.tolerance);
                 Ok(out)
             }
@@ -228,6 +248,7 @@ impl Prepared {
                     search_direction: None,
                     outer_steps: Some((out.outer_steps, out.setups)),
                     elongations: out.elongations,
+                    refinement: out.refinement,
                 };
                 check_equilibrium(model, f_ext, &mut out, tolerance);
                 Ok(out)
@@ -534,6 +555,7 @@ pub fn solve_in(
     Ok(SolveResult {
         factors,
         equilibrium_residual,
+        equilibrium_refinement: top.refinement,
         scene: model.name.clone(),
         method: opts.method.name().to_string(),
         effects: model.effects.names().into_iter().map(String::from).collect(),

@@ -639,6 +639,60 @@ fn options_reject_bad_values() {
     }
 }
 
+/// The README's tower with its unilateral cables, solved through the C ABI
+/// by cg on 4 subdomains to 1e-11: its tensions stop 1.1e-10 out of
+/// equilibrium, so a correction is solved, and the getter says so; the
+/// direct solve needs none.
+#[test]
+fn equilibrium_corrections_are_reported() {
+    let scene = nsdd::generate::tower(&nsdd::generate::TowerParams {
+        nx: 2,
+        ny: 2,
+        nz: 10,
+        ..Default::default()
+    });
+    let text = cstr(&serde_json::to_string(&scene).expect("scene to JSON"));
+    unsafe {
+        let mut s = null_mut();
+        ok(nsdd_scene_from_str(text.as_ptr(), true, &mut s));
+        let o = nsdd_options_new();
+        for (method, want) in [(NsddMethod::Direct, false), (NsddMethod::Cg, true)] {
+            ok(nsdd_options_set_method(o, method as u32));
+            ok(nsdd_options_set_subdomains(o, 4));
+            ok(nsdd_options_set_tolerance(o, 1e-11));
+            let mut r = null_mut();
+            ok(nsdd_solve(s, o, &mut r));
+            let (mut conv, mut eq, mut it) = (false, f64::NAN, 0usize);
+            ok(nsdd_result_converged(r, &mut conv));
+            ok(nsdd_result_equilibrium_residual(r, &mut eq));
+            ok(nsdd_result_iterations(r, &mut it));
+            let (mut corrections, mut corr_it) = (usize::MAX, usize::MAX);
+            ok(nsdd_result_equilibrium_corrections(r, &mut corrections, &mut corr_it));
+            assert!(conv && eq <= 1e-11, "converged {conv}, residual {eq:e}");
+            assert_eq!(corrections > 0, want, "{corrections} corrections");
+            assert!(corr_it < it || (!want && corr_it == 0), "{corr_it} of {it}");
+            expect_err(
+                nsdd_result_equilibrium_corrections(r, null_mut(), &mut corr_it),
+                NsddStatus::NullPointer,
+                "corrections",
+            );
+            expect_err(
+                nsdd_result_equilibrium_corrections(r, &mut corrections, null_mut()),
+                NsddStatus::NullPointer,
+                "iterations",
+            );
+            expect_err(
+                nsdd_result_equilibrium_corrections(null(), &mut corrections, &mut corr_it),
+                NsddStatus::NullPointer,
+                "result",
+            );
+            nsdd_result_destroy(r);
+        }
+        nsdd_options_destroy(o);
+        nsdd_scene_destroy(s);
+    }
+}
+
 #[test]
 fn result_getters_check_lengths() {
     let r = solved_truss();

@@ -68,7 +68,7 @@ fn rel_t(a: &[f64], b: &[f64]) -> f64 {
 /// The threaded result and `mpirun -np np`'s agree to 1e-12: displacements,
 /// tensions, slack sets, iteration counts, for the top level, every load
 /// path step and every load case.
-fn agree(scene_path: &Path, threaded: &SolveResult, method: Method, n: usize, np: usize) {
+fn agree(scene_path: &Path, threaded: &SolveResult, method: Method, n: usize, np: usize, tol: f64) {
     let out = dir().join(format!(
         "{}-{}-{n}-{np}.json",
         scene_path.file_stem().unwrap().to_str().unwrap(),
@@ -84,7 +84,7 @@ fn agree(scene_path: &Path, threaded: &SolveResult, method: Method, n: usize, np
             "--subdomains",
             &n.to_string(),
             "--tolerance",
-            "1e-8",
+            &tol.to_string(),
             "--max-iterations",
             "20000",
             "--out",
@@ -104,6 +104,7 @@ fn agree(scene_path: &Path, threaded: &SolveResult, method: Method, n: usize, np
     let r: SolveResult = serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
     assert!(r.converged, "{what}");
     assert_eq!(r.iterations, threaded.iterations, "{what}");
+    assert_eq!(r.equilibrium_refinement, threaded.equilibrium_refinement, "{what}");
     assert_eq!(r.subdomains, n, "{what}");
     let tops = std::iter::once((&r.displacements, &r.tensions, &r.slack)).chain(
         r.steps
@@ -131,6 +132,11 @@ fn agree(scene_path: &Path, threaded: &SolveResult, method: Method, n: usize, np
 }
 
 fn check_all(scene: &Scene, name: &str, cases: &[(Method, usize)], ranks: &[usize]) {
+    check_all_at(scene, name, cases, ranks, 1e-8);
+}
+
+fn check_all_at(scene: &Scene, name: &str, cases: &[(Method, usize)], ranks: &[usize], tol: f64) -> Vec<SolveResult> {
+    let mut results = Vec::new();
     let path = write_scene(scene, name);
     for &(method, n) in cases {
         // One thread, as each rank runs (faer's dense kernels split work by
@@ -139,7 +145,13 @@ fn check_all(scene: &Scene, name: &str, cases: &[(Method, usize)], ranks: &[usiz
             .num_threads(1)
             .build()
             .unwrap()
-            .install(|| solve(scene, &opts(scene, method, n)).unwrap());
+            .install(|| {
+                let o = SolveOptions {
+                    tolerance: tol,
+                    ..opts(scene, method, n)
+                };
+                solve(scene, &o).unwrap()
+            });
         assert!(
             threaded.converged,
             "{name} {}: {:?} after {} iterations",
@@ -148,8 +160,41 @@ fn check_all(scene: &Scene, name: &str, cases: &[(Method, usize)], ranks: &[usiz
             threaded.iterations
         );
         for &np in ranks {
-            agree(&path, &threaded, method, n, np);
+            agree(&path, &threaded, method, n, np, tol);
         }
+        results.push(threaded);
+    }
+    results
+}
+
+/// Equilibrium corrections (iterative refinement on the same set-up) run
+/// under MPI as on threads: a linear plate and the README's tower with
+/// its unilateral cables, asked for tolerances below the floor of their
+/// subdomain solves.
+#[test]
+fn equilibrium_corrections_on_2_ranks() {
+    let plate = grid(&GridParams {
+        nx: 32,
+        ny: 32,
+        unilateral: false,
+        t0: 0.0,
+        ..Default::default()
+    });
+    let tower = nsdd::generate::tower(&nsdd::generate::TowerParams {
+        nx: 2,
+        ny: 2,
+        nz: 10,
+        ..Default::default()
+    });
+    for (scene, name, n, tol) in [
+        (&plate, "plate-refined", 16, 1e-12),
+        (&tower, "tower-refined", 4, 1e-11),
+    ] {
+        let r = check_all_at(scene, name, &[(Method::Cg, n)], &[2], tol);
+        assert!(
+            r[0].equilibrium_refinement.is_some(),
+            "{name}: no correction was needed"
+        );
     }
 }
 

@@ -798,6 +798,30 @@ pub unsafe extern "C" fn nsdd_result_equilibrium_residual(result: *const NsddRes
     })
 }
 
+/// The equilibrium corrections of an iterative solve (its tensions left
+/// the loads unbalanced by more than half the tolerance, and corrections
+/// for those loads were solved on the same set-up and added) into
+/// `*corrections`, and the iterations they took, included in
+/// `nsdd_result_iterations`, into `*iterations`; both 0 when none was
+/// needed.
+///
+/// # Safety
+/// `result` must be a live result handle; `corrections` and `iterations`
+/// must point to writable `size_t`s.
+#[unsafe(no_mangle)]
+pub unsafe extern "C" fn nsdd_result_equilibrium_corrections(
+    result: *const NsddResult,
+    corrections: *mut usize,
+    iterations: *mut usize,
+) -> NsddStatus {
+    ffi_guard(|| {
+        let r = unsafe { handle(result, "result")? };
+        let rf = r.result.equilibrium_refinement;
+        unsafe { write_out(corrections, "corrections", rf.map_or(0, |rf| rf.corrections))? };
+        unsafe { write_out(iterations, "iterations", rf.map_or(0, |rf| rf.iterations)) }
+    })
+}
+
 /// Why the run stopped, as an `NsddStopReason` value, into `*out`: for
 /// an unconverged result, the first solve (load-path steps, the top level,
 /// the load cases) that did not converge says why.

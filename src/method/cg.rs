@@ -381,7 +381,7 @@ impl DdSolver {
         let v2 = self.op.norm2_subdomains(&ws.v);
         let (jump2, force2) = self.op.jump_norms2();
         if v2.is_finite() {
-            let jump = jump2.sqrt() / v2.sqrt().max(f64::MIN_POSITIVE);
+            let jump = jump2.sqrt() / self.displacement_scale(v2.sqrt());
             (jump, jump.max(force2.sqrt() / self.force_scale(b_norm)))
         } else {
             (f64::NAN, f64::NAN)
@@ -423,6 +423,22 @@ impl DdSolver {
             .precondition(&ws.jt, &ws.w, &mut ws.deluxe, &mut ws.sl, &mut ws.sh, &mut ws.zt);
         let fm = self.op.macro_force_error();
         (self.op.norm2(&ws.zt) + fm * fm).sqrt() / self.force_scale(b_norm)
+    }
+
+    /// The indicator of the solver's current state (`V` in the
+    /// subdomains, the interface forces and loads), measured as CG
+    /// measures its iterate on its true jump: for a state CG did not
+    /// produce, the sum of a solve and its equilibrium correction
+    /// ([`DdSolver::refine_equilibrium`]). `None` unless the method is cg.
+    pub(crate) fn cg_state_indicator(&mut self) -> Option<f64> {
+        let mut ws = self.cg.take()?;
+        for (cv, s) in ws.v.iter_mut().zip(&self.op.subs) {
+            cv.copy_from_slice(&s.v);
+        }
+        let b_norm = self.load_norm().max(f64::MIN_POSITIVE);
+        let indicator = self.cg_true_indicator(&mut ws, b_norm);
+        self.cg = Some(ws);
+        Some(indicator)
     }
 
     /// The indicator of the CG iterate measured on its true jump.

@@ -63,7 +63,7 @@ impl DdSolver {
             // Global step and coarse step.
             self.op.apply(&self.forces, has_cables, true);
             let v2 = self.op.v_norm2();
-            let vn = v2.sqrt().max(f64::MIN_POSITIVE);
+            let vn = self.displacement_scale(v2.sqrt());
             let (jump2, force2) = self.op.jump_norms2();
             let jump = jump2.sqrt() / vn;
             let force_scale = self.force_scale(b_norm);

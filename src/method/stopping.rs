@@ -77,5 +77,6 @@ pub fn finish(
         search_direction,
         outer_steps: None,
         elongations: None,
+        refinement: None,
     }
 }
