@@ -56,6 +56,10 @@ pub struct Equilibrium {
     pub lambda: Vec<f64>,
     /// Active-set iterations (direct) or solver iterations (DD).
     pub iterations: usize,
+    /// Element elongations summed over the iterative refinement's
+    /// corrections (more accurate than those of `u`, which rounds each
+    /// correction to `ε ‖u‖`); `None` where not refined.
+    pub elongations: Option<Vec<f64>>,
 }
 
 /// Timings and sizes of the direct factorization, for reports.
@@ -266,11 +270,12 @@ impl DirectSolver {
         let mut u0 = b.to_vec();
         self.chol.solve_in_place(&mut u0);
         if nc == 0 {
-            self.refine(model, b, &[], true, &mut u0, &mut []);
+            let elongations = self.refine(model, b, &[], true, &mut u0, &mut []);
             return Ok(Equilibrium {
                 u: u0,
                 lambda: Vec::new(),
                 iterations: 0,
+                elongations,
             });
         }
         // g_c = e_c(u0) + e0_c: cable strain with every cable taut.
@@ -371,7 +376,7 @@ impl DirectSolver {
                 if softened {
                     return Err(Error::Mechanism(mechanism.unwrap_or_default()));
                 }
-                self.refine(model, b, &set, schur_ok, &mut u, &mut lambda);
+                let elongations = self.refine(model, b, &set, schur_ok, &mut u, &mut lambda);
                 for l in lambda.iter_mut() {
                     *l = l.max(0.0);
                 }
@@ -379,6 +384,7 @@ impl DirectSolver {
                     u,
                     lambda,
                     iterations: it,
+                    elongations,
                 });
             }
             if !murty && !seen.insert(slack.clone()) {
@@ -406,10 +412,22 @@ impl DirectSolver {
     /// the factor of `K` with the cached Schur complement (slack cables
     /// kept, their tension cancelled by `λ`); otherwise on the
     /// refactorization without them.
-    fn refine(&mut self, model: &Model, b: &[f64], set: &[usize], schur: bool, u: &mut [f64], lambda: &mut [f64]) {
+    fn refine(
+        &mut self,
+        model: &Model,
+        b: &[f64],
+        set: &[usize],
+        schur: bool,
+        u: &mut [f64],
+        lambda: &mut [f64],
+    ) -> Option<Vec<f64>> {
         if model.elements.iter().any(|el| el.geo != 0.0) {
-            return;
+            return None;
         }
+        // The elongations of `u` and of each correction, summed apart: the
+        // sum `u` rounds each correction to `ε ‖u‖`, which at a stiffness
+        // contrast of 1e8 is 1e-8 of the stiff bars' elongations.
+        let mut elongations: Vec<f64> = (0..model.elements.len()).map(|e| model.elongation(e, u)).collect();
         // The cable index of each slack element.
         let mut slack_cable = vec![None; model.elements.len()];
         for &c in set {
@@ -422,8 +440,8 @@ impl DirectSolver {
             let mut r = b.to_vec();
             for (e, el) in model.elements.iter().enumerate() {
                 match slack_cable[e] {
-                    None => model.add_h(e, -el.k * model.elongation(e, u), &mut r),
-                    Some(c) if schur => model.add_h(e, -el.k * (model.elongation(e, u) + lambda[c]), &mut r),
+                    None => model.add_h(e, -el.k * elongations[e], &mut r),
+                    Some(c) if schur => model.add_h(e, -el.k * (elongations[e] + lambda[c]), &mut r),
                     Some(_) => model.add_h(e, el.k * el.e0, &mut r),
                 }
             }
@@ -435,10 +453,10 @@ impl DirectSolver {
                     let mut g = vec![0.0; model.cables.len()];
                     for &c in set {
                         let e = model.cables[c];
-                        g[c] = model.elongation(e, &r) + model.elongation(e, u) + model.elements[e].e0 + lambda[c];
+                        g[c] = model.elongation(e, &r) + elongations[e] + model.elements[e].e0 + lambda[c];
                     }
                     let Ok(mu) = self.solve_schur(model, set, &g) else {
-                        return;
+                        break;
                     };
                     let mut q = vec![0.0; r.len()];
                     for (i, &c) in set.iter().enumerate() {
@@ -452,26 +470,31 @@ impl DirectSolver {
                 }
             } else {
                 let Some(chol) = self.without_slack.as_mut() else {
-                    return;
+                    break;
                 };
                 chol.solve_in_place(&mut r);
             }
             if !r.iter().all(|x| x.is_finite()) {
-                return;
+                break;
             }
             u.iter_mut().zip(&r).for_each(|(x, d)| *x += d);
+            elongations
+                .iter_mut()
+                .enumerate()
+                .for_each(|(e, x)| *x += model.elongation(e, &r));
             if !schur {
                 for &c in set {
                     let e = model.cables[c];
-                    lambda[c] = -(model.elongation(e, u) + model.elements[e].e0);
+                    lambda[c] = -(elongations[e] + model.elements[e].e0);
                 }
             }
             self.refinements += 1;
             let d_norm = r.iter().map(|x| x * x).sum::<f64>().sqrt();
             if d_norm <= REFINED * u_norm {
-                return;
+                break;
             }
         }
+        Some(elongations)
     }
 
     /// Adds Schur columns for cables of `set` not yet cached.
