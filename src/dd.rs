@@ -350,6 +350,10 @@ pub(crate) struct IfaceState {
     /// per-iteration kernels use (vectorised slice loops).
     pub(crate) runs: Vec<Run>,
     pub(crate) jump: Vec<f64>,
+    /// The jump of the solve an equilibrium correction continues, added to
+    /// every jump of an iterate (empty: none; see
+    /// [`DdSolver::refine_equilibrium`]).
+    pub(crate) base_jump: Vec<f64>,
     /// `P_Γ` (`entries × m_Γ`), empty without coarse space.
     pub(crate) p: Mat<f64>,
     pub(crate) macro_off: usize,
@@ -693,6 +697,7 @@ impl DdSolver {
                     &dec.entry_hi_local[it.start..it.end],
                 ),
                 jump: vec![0.0; it.len()],
+                base_jump: Vec::new(),
                 p: Mat::zeros(0, 0),
                 macro_off: 0,
                 jump_norm2: 0.0,
@@ -1482,24 +1487,20 @@ impl DdSolver {
     }
 
     /// Iterative refinement of a converged linear solve, on the subdomain
-    /// factorizations and coarse problem already set up: the loads its
-    /// tensions leave unbalanced are solved for ([`Self::correction`]) and
-    /// the correction added, until the residual is below `REFINE_ABOVE`
-    /// times the tolerance (at most `MAX_CORRECTIONS` corrections). The
-    /// floor a DD solve reaches (its subdomains' round-off times the
-    /// rigid-body amplitudes of floating subdomains) is relative to the
-    /// solution, so a correction, 1e-8 of it in size, carries 1e-8 of that
-    /// floor: the 410² plate on 64 subdomains went from a residual of
-    /// 1.7e-8 to 4e-15, and from tensions 3e-8 off to 3e-10 off, in one
-    /// correction. The sum's interface jump is the solve's plus the
-    /// correction's, so a correction is measured in the solve's units and
-    /// stopped at half of what the solve's indicator left below the
-    /// tolerance (at least a twentieth of it): the sum's indicator, measured
-    /// again at the end (cg), stays below the tolerance.
+    /// factorizations and coarse problem already set up ([`Self::correction`]),
+    /// until its tensions leave the loads unbalanced by less than
+    /// `REFINE_ABOVE` times the tolerance (at most `MAX_CORRECTIONS`
+    /// corrections). The floor a DD solve reaches (its subdomains'
+    /// round-off times the rigid-body amplitudes of floating subdomains)
+    /// is relative to what the subdomains solve for, and a correction
+    /// solves for the unbalanced loads only, 1e-8 of the solution: the 410²
+    /// plate on 64 subdomains went from a residual of 1.7e-8 (tensions
+    /// 1.25e-8 off the direct solve's) to 4e-15 (2.8e-10 off).
     /// `tension(e, elongation)` is element `e`'s tension in the solved
     /// (linear) structure, 0 for an element it does not hold; `ids` as in
-    /// [`Self::write_element_elongations`]. The corrections' iterations and
-    /// history entries are added to `solve`'s.
+    /// [`Self::write_element_elongations`]. The corrections are added to
+    /// `solve`'s displacements and elongations, their iterations and
+    /// history entries to its own.
     #[allow(clippy::too_many_arguments)]
     pub(crate) fn refine_equilibrium(
         &mut self,
@@ -1512,7 +1513,12 @@ impl DdSolver {
     ) -> Result<Option<Refinement>> {
         let tolerance = self.opts.tolerance;
         let mut refinement: Option<Refinement> = None;
+        let mut indicator = solve.history.last().map_or(f64::INFINITY, |h| h.indicator);
         for k in 0..MAX_CORRECTIONS {
+            let converged = *solve.status == Status::Converged;
+            if !converged && !matches!(*solve.status, Status::Stalled | Status::Breakdown) {
+                break;
+            }
             let tensions: Vec<f64> = solve
                 .elongations
                 .iter()
@@ -1522,13 +1528,10 @@ impl DdSolver {
             let Some((unbalanced, r)) = model.unbalanced_forces(f_ext, &tensions) else {
                 break;
             };
-            if r <= REFINE_ABOVE * tolerance {
+            if converged && r <= REFINE_ABOVE * tolerance {
                 break;
             }
-            let last = solve.history.last().cloned();
-            let (t_done, ind0) = last.map_or((0.0, 0.0), |h| (h.time_s, h.indicator));
-            let target = 0.5 * (tolerance - ind0).max(0.1 * tolerance);
-            let (corr, sum_indicator) = self.correction(model, dec, ids, &unbalanced, target)?;
+            let corr = self.correction(model, dec, ids, &unbalanced)?;
             let Some(de) = corr.elongations else {
                 break;
             };
@@ -1541,50 +1544,77 @@ impl DdSolver {
             });
             rf.corrections = k + 1;
             rf.iterations += corr.iterations;
-            // Each entry bounds the sum's indicator by the solve's plus
-            // the correction's; the last one is the sum's measured (cg).
             let done = *solve.iterations;
+            let t_done = solve.history.last().map_or(0.0, |h| h.time_s);
             *solve.iterations += corr.iterations;
             solve.history.extend(corr.history.into_iter().map(|mut h| {
                 h.iteration += done;
                 h.time_s += t_done;
-                h.indicator += ind0;
                 h
             }));
-            if let (Some(ind), Some(h)) = (sum_indicator, solve.history.last_mut()) {
-                h.indicator = ind;
+            if corr.status == Status::Converged {
+                (*solve.status, *solve.message) = (Status::Converged, None);
+                continue;
             }
-            if corr.status != Status::Converged {
-                break;
+            // A correction that stopped on its own floor, far below the
+            // one it started from, is followed by another from there.
+            let reached = solve.history.last().map_or(f64::INFINITY, |h| h.indicator);
+            let progress = reached < CORRECTION_PROGRESS * indicator;
+            indicator = reached;
+            let why = corr.message.map(|m| format!(": {m}")).unwrap_or_default();
+            if converged {
+                *solve.status = corr.status;
+                *solve.message = Some(format!(
+                    "the correction for the loads its tensions left unbalanced ({r:.1e} of their norm) {}{why}",
+                    corr.status.describe()
+                ));
+            } else if progress && corr.status == Status::Stalled {
+                continue;
+            } else if let Some(m) = solve.message.as_mut() {
+                m.push_str(&format!(
+                    "; {} correction{} from that state, on the loads its tensions left unbalanced, took the \
+                     indicator to {reached:.1e} and {} too{why}",
+                    k + 1,
+                    if k == 0 { "" } else { "s" },
+                    corr.status.describe()
+                ));
             }
+            break;
         }
         Ok(refinement)
     }
 
-    /// One step of iterative refinement of a linear solve (no unilateral
-    /// cables): solves for the loads `unbalanced` that the last solve's
-    /// tensions leave (see [`Model::unbalanced_forces`]) until its
-    /// indicator, measured against the solve's force and displacement
-    /// scales ([`Self::force_scale`], [`Self::displacement_scale`]), is
-    /// below `target`, and adds that correction to the solver's state
-    /// (interface forces and subdomain displacements, so a warm start goes
-    /// on from the sum). Returns the correction's outcome, with
-    /// `elongations` the correction's own (indexed like `model`'s elements,
-    /// from `u` for the elements no subdomain holds) for the caller to add,
-    /// and the sum's indicator (cg). A correction that does not end finite
-    /// is not added.
+    /// One equilibrium correction of a linear solve (no unilateral
+    /// cables): the method is run again from zero interface forces on the
+    /// loads `unbalanced` that the solve's tensions leave (see
+    /// [`Model::unbalanced_forces`]), with the solve's interface jump added
+    /// to every jump of its iterates. The subdomains then solve for the
+    /// unbalanced loads alone, and what the method measures, and drives
+    /// below the tolerance, is the sum's jump, against the solve's force
+    /// and displacement scales ([`Self::force_scale`],
+    /// [`Self::displacement_scale`]), without the certificate of a
+    /// relative error (the correction's own error matters only against the
+    /// sum). Returns the correction: `u`, and `elongations` indexed like
+    /// `model`'s elements (from `u` for those no subdomain holds), for the
+    /// caller to add; the solver's state (interface forces, displacements)
+    /// becomes the sum, so a warm start goes on from it. A correction that
+    /// does not end finite leaves the solve as it was (`elongations`
+    /// `None`).
     fn correction(
         &mut self,
         model: &Model,
         dec: &Decomposition,
         ids: Option<&[usize]>,
         unbalanced: &[f64],
-        target: f64,
-    ) -> Result<(Outcome, Option<f64>)> {
+    ) -> Result<Outcome> {
         debug_assert_eq!(self.n_cables, 0, "a correction superposes: linear solves only");
         let floors = (self.force_scale(self.load_norm()), self.subdomain_v_norm());
         let forces = self.forces.clone();
         let saved: Vec<(Vec<f64>, Vec<f64>)> = self.op.subs.iter().map(|s| (s.v.clone(), s.b.clone())).collect();
+        self.op.jumps(None);
+        for it in self.op.ifaces.iter_mut() {
+            it.base_jump = it.jump.clone();
+        }
         let subs_dofs = &self.dof_maps[self.op.comm.owned()];
         self.op
             .subs
@@ -1595,29 +1625,20 @@ impl DdSolver {
                     s.b[l] = unbalanced[d] * s.inv_mult[l];
                 }
             });
-        // What matters of a correction's own error is its size against the
-        // solve's, so it stops on that indicator alone, without certifying
-        // its relative error.
-        let asked = std::mem::replace(&mut self.opts.tolerance, target);
         let certify = std::mem::replace(&mut self.certify, false);
         self.scale_floors = floors;
         let out = self.iterate(false, None);
         self.scale_floors = (0.0, 0.0);
-        self.opts.tolerance = asked;
         self.certify = certify;
+        for it in self.op.ifaces.iter_mut() {
+            it.base_jump = Vec::new();
+        }
         let mut out = out?;
         let finite = out.u.iter().all(|x| x.is_finite());
         if finite {
             let mut e: Vec<f64> = (0..model.elements.len()).map(|e| model.elongation(e, &out.u)).collect();
             self.write_element_elongations(model, dec, ids, &mut e);
             out.elongations = Some(e);
-        }
-        for (f, f0) in self.forces.iter_mut().zip(&forces) {
-            if finite {
-                f.iter_mut().zip(f0).for_each(|(x, x0)| *x += x0);
-            } else {
-                f.copy_from_slice(f0);
-            }
         }
         for (s, (v0, b0)) in self.op.subs.iter_mut().zip(saved) {
             if finite {
@@ -1627,8 +1648,16 @@ impl DdSolver {
             }
             s.b = b0;
         }
-        let sum_indicator = if finite { self.cg_state_indicator() } else { None };
-        Ok((out, sum_indicator))
+        for (f, f0) in self.forces.iter_mut().zip(&forces) {
+            if finite {
+                f.iter_mut().zip(f0).for_each(|(x, x0)| *x += x0);
+            } else {
+                f.copy_from_slice(f0);
+            }
+        }
+        // The jumps of the sum, for what reads them next.
+        self.op.jumps(None);
+        Ok(out)
     }
 
     /// `‖V‖` over the subdomains' current displacements.
@@ -1687,6 +1716,10 @@ impl DdSolver {
 /// corrections.
 const MAX_CORRECTIONS: usize = 3;
 
+/// A correction that stalls with its indicator below this fraction of the
+/// one it started from is followed by another.
+const CORRECTION_PROGRESS: f64 = 0.1;
+
 /// A converged linear DD solve whose tensions leave more than this fraction
 /// of the tolerance unbalanced is refined (the true tension error has been
 /// measured at 0.6–1.8 × that residual).
@@ -1701,6 +1734,10 @@ pub(crate) struct Refined<'a> {
     pub elongations: &'a mut [f64],
     pub history: &'a mut Vec<crate::result::HistoryEntry>,
     pub iterations: &'a mut usize,
+    /// How the solve ended, and why if not converged: a solve stalled (or
+    /// broken down) on a round-off floor is continued by a correction too.
+    pub status: &'a mut Status,
+    pub message: &'a mut Option<String>,
 }
 
 /// A small linear grid on 6 subdomains and `cg` options (Dirichlet,

@@ -890,7 +890,13 @@ impl NonsmoothCg {
                 let mut elongations = self.local_elongations(model, &u);
                 let mut u = u;
                 let mut refinement = None;
-                if inner_converged {
+                let (mut status, mut message) = (inner_status, inner_message);
+                // A certified solve of the settled set is refined if its
+                // tensions miss equilibrium; one stalled (or broken down)
+                // on a round-off floor is continued by a correction, and
+                // its set checked again on the corrected strains.
+                let refinable = matches!(inner_status, Status::Converged | Status::Stalled | Status::Breakdown);
+                if refinable {
                     if let (Some(el), Some(step)) = (elongations.as_mut(), self.current.as_mut()) {
                         // The settled set's structure is linear: refine it
                         // as a linear solve (its slack cables carry nothing).
@@ -918,11 +924,32 @@ impl NonsmoothCg {
                                 elongations: el,
                                 history: &mut history,
                                 iterations: &mut total,
+                                status: &mut status,
+                                message: &mut message,
                             },
                         )?;
                         if refinement.is_some() {
+                            let mut scale = 0.0f64;
                             for (c, &e) in model.cables.iter().enumerate() {
                                 g[c] = el[e] + model.elements[e].e0;
+                                scale = scale.max(g[c].abs());
+                            }
+                            let thr = tol * scale;
+                            let (mut flips, mut worst) = (0usize, 0.0f64);
+                            for c in 0..nc {
+                                let v = if slack[c] { g[c] } else { -g[c] };
+                                if v > thr {
+                                    flips += 1;
+                                    worst = worst.max(v / scale);
+                                }
+                            }
+                            if flips > 0 && status == Status::Converged {
+                                status = Status::Stalled;
+                                message = Some(format!(
+                                    "the solve of the last cable set converged after an equilibrium correction, \
+                                     but {flips} cables then violate complementarity (by up to {worst:.1e} of the \
+                                     strain scale): the set is not certified"
+                                ));
                             }
                         }
                     }
@@ -934,8 +961,9 @@ impl NonsmoothCg {
                         u,
                         lambda,
                         iterations: total,
+                        elongations: None,
                     },
-                    converged: inner_converged,
+                    converged: status == Status::Converged,
                     history,
                     outer_steps: outer,
                     setups,
@@ -945,7 +973,7 @@ impl NonsmoothCg {
                     face_blocks_reused: self.pool.face_blocks_reused,
                     coarse_blocks_reused: self.pool.coarse_blocks_reused,
                     elongations,
-                    message: inner_message,
+                    message,
                     refinement,
                 });
             }
@@ -970,6 +998,7 @@ impl NonsmoothCg {
                         u,
                         lambda,
                         iterations: total,
+                        elongations: None,
                     },
                     converged: false,
                     history,

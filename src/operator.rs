@@ -50,8 +50,11 @@ fn columns_dot(a: &faer::Mat<f64>, x: &[f64], out: &mut [f64]) {
 /// `jump = lo − hi` on the interface and its two norms (length, and the
 /// force the jump leaves unbalanced through the lumped stiffness).
 #[inline]
-fn jump_of(it: &mut IfaceState, lo: &[f64], hi: &[f64]) {
+fn jump_of(it: &mut IfaceState, lo: &[f64], hi: &[f64], with_base: bool) {
     kernels::jump_runs(&mut it.jump, lo, hi, &it.runs);
+    if with_base && !it.base_jump.is_empty() {
+        it.jump.iter_mut().zip(&it.base_jump).for_each(|(j, b)| *j += b);
+    }
     it.jump_norm2 = kernels::norm2(&it.jump);
     it.force_norm2 = it.jump.iter().zip(&it.stiffness).map(|(j, k)| (j * k) * (j * k)).sum();
 }
@@ -177,7 +180,7 @@ impl<C: Communicator> InterfaceOperator<C> {
     /// `v`, the jump in the interfaces' `jump`.
     pub fn apply(&mut self, forces: &[Vec<f64>], with_cables: bool, load: bool) {
         self.global_step(forces, with_cables, load);
-        self.jumps(None);
+        self.jumps_of_subdomains(load);
     }
 
     /// The global step of [`Self::apply`], without the jumps.
@@ -272,18 +275,30 @@ impl<C: Communicator> InterfaceOperator<C> {
 
     /// `jump = J V` on every interface, with `V` the subdomains' own `v`, or
     /// `v` when given (per subdomain: CG's iterate).
+    ///
+    /// An iterate's jump: with an equilibrium correction under way, the
+    /// corrected solve's jump is added (`base_jump`).
     pub fn jumps(&mut self, v: Option<&[Vec<f64>]>) {
         match v {
-            Some(v) => self
-                .comm
-                .neighbour_traces(v, |v| &v[..], &mut self.ifaces, |_, it, lo, hi| jump_of(it, lo, hi)),
-            None => self.comm.neighbour_traces(
-                &self.subs,
-                |s| &s.v,
+            Some(v) => self.comm.neighbour_traces(
+                v,
+                |v| &v[..],
                 &mut self.ifaces,
-                |_, it, lo, hi| jump_of(it, lo, hi),
+                |_, it, lo, hi| jump_of(it, lo, hi, true),
             ),
+            None => self.jumps_of_subdomains(true),
         }
+    }
+
+    /// `jump = J V` of the subdomains' own `v`, with the corrected solve's
+    /// jump added if `iterate` (not for CG's `A p`).
+    fn jumps_of_subdomains(&mut self, iterate: bool) {
+        self.comm.neighbour_traces(
+            &self.subs,
+            |s| &s.v,
+            &mut self.ifaces,
+            |_, it, lo, hi| jump_of(it, lo, hi, iterate),
+        )
     }
 
     /// `F += d Σ_E B_Eᵀ D_E B_E jump` (cross points couple their pair

@@ -1800,12 +1800,13 @@ fn c_examples() {
 }
 
 /// `nsdd_result_stop_reason` names why a run stopped: the README's tower
-/// with cables 1e8 times softer than its bars (`ea_cable = 1e-4`) stalls
-/// with cg on 4 subdomains before its limit (on the round-off floor of
-/// its force balance), a limit of 3 runs out, the direct method
-/// converges; the value matches the Rust result. (The README's own tower
-/// at contrast 1e4 served here until it converged, on 16 subdomains, with
-/// the set-up's supernodal subdomain factors.)
+/// with cables 1e8 times softer than its bars (`ea_cable = 1e-4`) asked
+/// for 1e-17 stalls with cg on 4 subdomains before its limit (its
+/// equilibrium corrections take the indicator there, but the tensions'
+/// own round-off is 9e-17), a limit of 3 runs out, the direct method
+/// converges; the value matches the Rust result. (At 1e-8 this tower
+/// stalled until its floor was corrected, and the README's own tower at
+/// contrast 1e4 served here before that.)
 #[test]
 fn result_stop_reason() {
     like_the_c_abi();
@@ -1824,6 +1825,7 @@ fn result_stop_reason() {
         let o = nsdd_options_new();
         ok(nsdd_options_set_method(o, NsddMethod::Cg as u32));
         ok(nsdd_options_set_subdomains(o, 4));
+        ok(nsdd_options_set_tolerance(o, 1e-17));
         let reason = |o: *const NsddOptions| {
             let mut r = null_mut();
             ok(nsdd_solve(s, o, &mut r));
@@ -1842,6 +1844,7 @@ fn result_stop_reason() {
         let mut rust_opts = SolveOptions::from_scene(&scene);
         rust_opts.method = Method::Cg;
         rust_opts.subdomains = 4;
+        rust_opts.tolerance = 1e-17;
         let rust = solve(&scene, &rust_opts).unwrap();
         assert_eq!(rust.status, nsdd::outcome::Status::Stalled);
         assert_eq!(rust.iterations, it);

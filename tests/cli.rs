@@ -415,9 +415,10 @@ fn unconverged_solve_writes_result_and_exits_5() {
 }
 
 /// The README's tower with cables 1e8 times softer than its bars
-/// (`ea_cable=1e-4`) and cg on 4 subdomains gives up (stalled) long before
-/// its iteration limit, on the round-off floor of its force balance; the
-/// result and the message say why, and a tiny limit is reported as such.
+/// (`ea_cable=1e-4`) and cg on 4 subdomains, asked for 1e-17, gives up
+/// (stalled) long before its iteration limit, on the round-off of its
+/// tensions after its equilibrium corrections; the result and the message
+/// say why, and a tiny limit is reported as such.
 #[test]
 fn unconverged_solve_names_its_stop_reason() {
     let d = tmp("stop-reason");
@@ -433,7 +434,16 @@ fn unconverged_solve_names_its_stop_reason() {
         "--out",
         s(&tower),
     ]));
-    let base = ["solve", s(&tower), "--method", "cg", "--subdomains", "4"];
+    let base = [
+        "solve",
+        s(&tower),
+        "--method",
+        "cg",
+        "--subdomains",
+        "4",
+        "--tolerance",
+        "1e-17",
+    ];
     let res = d.join("r.json");
     let out = nsdd(&[&base[..], &["--out", s(&res)]].concat());
     assert_eq!(out.status.code(), Some(5));

@@ -425,22 +425,6 @@ impl DdSolver {
         (self.op.norm2(&ws.zt) + fm * fm).sqrt() / self.force_scale(b_norm)
     }
 
-    /// The indicator of the solver's current state (`V` in the
-    /// subdomains, the interface forces and loads), measured as CG
-    /// measures its iterate on its true jump: for a state CG did not
-    /// produce, the sum of a solve and its equilibrium correction
-    /// ([`DdSolver::refine_equilibrium`]). `None` unless the method is cg.
-    pub(crate) fn cg_state_indicator(&mut self) -> Option<f64> {
-        let mut ws = self.cg.take()?;
-        for (cv, s) in ws.v.iter_mut().zip(&self.op.subs) {
-            cv.copy_from_slice(&s.v);
-        }
-        let b_norm = self.load_norm().max(f64::MIN_POSITIVE);
-        let indicator = self.cg_true_indicator(&mut ws, b_norm);
-        self.cg = Some(ws);
-        Some(indicator)
-    }
-
     /// The indicator of the CG iterate measured on its true jump.
     fn cg_true_indicator(&mut self, ws: &mut CgWorkspace, b_norm: f64) -> f64 {
         let (jump, monitor) = self.cg_jump(ws, b_norm);
