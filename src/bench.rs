@@ -29,7 +29,11 @@ pub struct DirectProfile {
     pub assembly_s: f64,
     pub ordering_s: f64,
     pub factor_s: f64,
+    /// The solve, its iterative refinement included...
     pub solve_s: f64,
+    /// ...which took this long, in this many corrections.
+    pub refinement_s: f64,
+    pub refinements: usize,
     pub active_set_steps: usize,
     /// `(assembly + ordering + solve) / factor`: the overhead outside the
     /// numeric factorization.
@@ -67,6 +71,8 @@ pub fn direct_profile(scene: &Scene) -> Result<DirectProfile> {
         ordering_s: st.ordering_s,
         factor_s: st.factor_s,
         solve_s,
+        refinement_s: st.refinement_s,
+        refinements: st.refinements,
         active_set_steps: eq.iterations,
         overhead_ratio: (st.assembly_s + st.ordering_s + solve_s) / st.factor_s.max(1e-12),
         matrix_and_factor_bytes: bytes,

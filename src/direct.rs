@@ -78,6 +78,10 @@ pub struct DirectStats {
     pub ordering: Option<OrderingKind>,
     /// Threads of the numeric factorization.
     pub threads: usize,
+    /// Iterative refinement: corrections solved, and their time (residuals
+    /// and substitutions), over every solve so far.
+    pub refinements: usize,
+    pub refinement_s: f64,
 }
 
 /// Parallelism of the whole-structure factorizations (the first one and
@@ -127,8 +131,6 @@ pub struct DirectSolver {
     without_slack: Option<SparseCholesky>,
     /// Numeric refactorizations done by the active set (for tests/reports).
     refactorizations: usize,
-    /// Iterative-refinement corrections added so far (for tests/reports).
-    refinements: usize,
 }
 
 impl DirectSolver {
@@ -165,6 +167,8 @@ impl DirectSolver {
             supernodal: chol.is_supernodal(),
             ordering: Some(chol.ordering()),
             threads: par.degree(),
+            refinements: 0,
+            refinement_s: 0.0,
         };
         Ok(DirectSolver {
             chol,
@@ -175,7 +179,6 @@ impl DirectSolver {
             schur_max: SCHUR_MAX,
             without_slack: None,
             refactorizations: 0,
-            refinements: 0,
         })
     }
 
@@ -193,7 +196,7 @@ impl DirectSolver {
 
     /// Iterative-refinement corrections added to the solves so far.
     pub fn refinements(&self) -> usize {
-        self.refinements
+        self.stats.refinements
     }
 
     /// Solves `(K − (1−s) H_S K_S H_Sᵀ) u = b + (1−s) H_S K_S e0_S`: the
@@ -427,6 +430,7 @@ impl DirectSolver {
         // The elongations of `u` and of each correction, summed apart: the
         // sum `u` rounds each correction to `ε ‖u‖`, which at a stiffness
         // contrast of 1e8 is 1e-8 of the stiff bars' elongations.
+        let started = std::time::Instant::now();
         let mut elongations: Vec<f64> = (0..model.elements.len()).map(|e| model.elongation(e, u)).collect();
         // The cable index of each slack element.
         let mut slack_cable = vec![None; model.elements.len()];
@@ -488,12 +492,13 @@ impl DirectSolver {
                     lambda[c] = -(elongations[e] + model.elements[e].e0);
                 }
             }
-            self.refinements += 1;
+            self.stats.refinements += 1;
             let d_norm = r.iter().map(|x| x * x).sum::<f64>().sqrt();
             if d_norm <= REFINED * u_norm {
                 break;
             }
         }
+        self.stats.refinement_s += started.elapsed().as_secs_f64();
         Some(elongations)
     }
 

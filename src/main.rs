@@ -879,8 +879,8 @@ fn bench_direct_scene(a: &BenchArgs) -> Result<i32> {
         );
         println!("factor     {:.3} s ({} threads)", p.factor_s, p.factor_threads);
         println!(
-            "solve      {:.3} s ({} active-set steps)",
-            p.solve_s, p.active_set_steps
+            "solve      {:.3} s ({} active-set steps; iterative refinement {:.3} s in {} corrections)",
+            p.solve_s, p.active_set_steps, p.refinement_s, p.refinements
         );
         println!("K+L        {:.1} MiB", mib(p.matrix_and_factor_bytes));
         println!("peak       {:.1} MiB", p.peak_bytes.map_or(f64::NAN, mib));
