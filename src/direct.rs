@@ -47,6 +47,10 @@ const SOFT: f64 = 1e-6;
 const MAX_REFINEMENTS: usize = 3;
 const REFINED: f64 = 1e-14;
 
+/// ...or once the residual is below this fraction of the element forces it
+/// sums (before solving the next correction).
+const RESIDUAL_DONE: f64 = 1e-15;
+
 /// The equilibrium found by a solver, in free-dof numbering.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Equilibrium {
@@ -442,12 +446,29 @@ impl DirectSolver {
             // r = b − Σ_e H_e k_e e_e(u), over the elements in the solved
             // system: slack cables with `λ` (Schur), or not at all.
             let mut r = b.to_vec();
+            let mut forces2 = 0.0;
             for (e, el) in model.elements.iter().enumerate() {
-                match slack_cable[e] {
-                    None => model.add_h(e, -el.k * elongations[e], &mut r),
-                    Some(c) if schur => model.add_h(e, -el.k * (elongations[e] + lambda[c]), &mut r),
-                    Some(_) => model.add_h(e, el.k * el.e0, &mut r),
-                }
+                let t = match slack_cable[e] {
+                    None => el.k * elongations[e],
+                    Some(c) if schur => el.k * (elongations[e] + lambda[c]),
+                    Some(_) => -el.k * el.e0,
+                };
+                forces2 += t * t;
+                model.add_h(e, -t, &mut r);
+            }
+            // Done when the residual is at the round-off of the forces it
+            // sums (and, on the Schur path, the slack cables' tension too):
+            // on a well-conditioned structure before any correction, on
+            // the 1e6-dof plate after one (a second cost 0.35 s of 12).
+            let r_norm = r.iter().map(|x| x * x).sum::<f64>().sqrt();
+            let strain = elongations.iter().fold(0.0f64, |m, x| m.max(x.abs()));
+            let cancelled = !schur
+                || set.iter().all(|&c| {
+                    let e = model.cables[c];
+                    (elongations[e] + model.elements[e].e0 + lambda[c]).abs() <= RESIDUAL_DONE * strain
+                });
+            if r_norm <= RESIDUAL_DONE * forces2.sqrt() && cancelled {
+                break;
             }
             if schur {
                 self.chol.solve_in_place(&mut r);
