@@ -1441,6 +1441,14 @@ impl DdSolver {
                 format!("has {} entries, expected {}", f_ext.len(), self.n_free),
             ));
         }
+        self.set_loads(f_ext, true);
+        self.iterate(warm, progress)
+    }
+
+    /// Each subdomain's right-hand side from the nodal forces `f` (global
+    /// dofs; a force on a dof shared by `m` subdomains split equally),
+    /// plus its prestrain if `prestrain`.
+    fn set_loads(&mut self, f: &[f64], prestrain: bool) {
         let subs_dofs = &self.dof_maps[self.op.comm.owned()];
         self.op
             .subs
@@ -1448,10 +1456,9 @@ impl DdSolver {
             .zip(subs_dofs.par_iter())
             .for_each(|(s, dofs)| {
                 for (l, &d) in dofs.iter().enumerate() {
-                    s.b[l] = f_ext[d] * s.inv_mult[l] + s.prestrain[l];
+                    s.b[l] = f[d] * s.inv_mult[l] + if prestrain { s.prestrain[l] } else { 0.0 };
                 }
             });
-        self.iterate(warm, progress)
     }
 
     /// Solves for right-hand sides given per subdomain in local numbering
@@ -1615,16 +1622,7 @@ impl DdSolver {
         for it in self.op.ifaces.iter_mut() {
             it.base_jump = it.jump.clone();
         }
-        let subs_dofs = &self.dof_maps[self.op.comm.owned()];
-        self.op
-            .subs
-            .par_iter_mut()
-            .zip(subs_dofs.par_iter())
-            .for_each(|(s, dofs)| {
-                for (l, &d) in dofs.iter().enumerate() {
-                    s.b[l] = unbalanced[d] * s.inv_mult[l];
-                }
-            });
+        self.set_loads(unbalanced, false);
         let certify = std::mem::replace(&mut self.certify, false);
         self.scale_floors = floors;
         let out = self.iterate(false, None);
