@@ -1493,11 +1493,13 @@ impl DdSolver {
         self.iterate(warm, progress)
     }
 
-    /// Iterative refinement of a converged linear solve, on the subdomain
-    /// factorizations and coarse problem already set up ([`Self::correction`]),
-    /// until its tensions leave the loads unbalanced by less than
-    /// `REFINE_ABOVE` times the tolerance (at most `MAX_CORRECTIONS`
-    /// corrections). The floor a DD solve reaches (its subdomains'
+    /// Iterative refinement of a linear solve that converged, or stalled
+    /// (broke down) on a round-off floor, on the subdomain factorizations
+    /// and coarse problem already set up ([`Self::correction`]): until it
+    /// converges with its tensions leaving the loads unbalanced by less
+    /// than `REFINE_ABOVE` times the tolerance, at most `MAX_CORRECTIONS`
+    /// corrections, a stalled one followed by another only if it got the
+    /// indicator `CORRECTION_PROGRESS` lower. The floor a DD solve reaches (its subdomains'
     /// round-off times the rigid-body amplitudes of floating subdomains)
     /// is relative to what the subdomains solve for, and a correction
     /// solves for the unbalanced loads only, 1e-8 of the solution: the 410²
@@ -1631,12 +1633,14 @@ impl DdSolver {
         for it in self.op.ifaces.iter_mut() {
             it.base_jump = Vec::new();
         }
-        let mut out = out?;
-        let finite = out.u.iter().all(|x| x.is_finite());
-        if finite {
-            let mut e: Vec<f64> = (0..model.elements.len()).map(|e| model.elongation(e, &out.u)).collect();
+        // The solve's state comes back whatever the correction's ending, an
+        // error included.
+        let mut out = out;
+        let finite = matches!(&out, Ok(o) if o.u.iter().all(|x| x.is_finite()));
+        if let (true, Ok(o)) = (finite, out.as_mut()) {
+            let mut e: Vec<f64> = (0..model.elements.len()).map(|e| model.elongation(e, &o.u)).collect();
             self.write_element_elongations(model, dec, ids, &mut e);
-            out.elongations = Some(e);
+            o.elongations = Some(e);
         }
         for (s, (v0, b0)) in self.op.subs.iter_mut().zip(saved) {
             if finite {
@@ -1655,7 +1659,7 @@ impl DdSolver {
         }
         // The jumps of the sum, for what reads them next.
         self.op.jumps(None);
-        Ok(out)
+        out
     }
 
     /// `‖V‖` over the subdomains' current displacements.
