@@ -799,12 +799,7 @@ impl NonsmoothCg {
             let inner_message = out
                 .message
                 .map(|m| format!("the cg solve of the last cable set stopped: {m}"));
-            let mut scale = 0.0f64;
-            for (c, &e) in model.cables.iter().enumerate() {
-                g[c] = model.elongation(e, &u) + model.elements[e].e0;
-                scale = scale.max(g[c].abs());
-            }
-            let scale = scale.max(f64::MIN_POSITIVE);
+            let scale = cable_strains(model, |e| model.elongation(e, &u), &mut g);
             // Strain errors of an inexact solve are about its tolerance
             // times the strain scale, but the CG's stopping test leaves it
             // closer than that: violations down to a tenth of the inner
@@ -816,14 +811,10 @@ impl NonsmoothCg {
             let mut next = slack.clone();
             let mut first = None;
             let mut worst = 0.0f64;
-            for c in 0..nc {
-                // Slack: λ = −g < −thr; taut: g < −thr.
-                let v = if slack[c] { g[c] } else { -g[c] };
-                if v > thr {
-                    first.get_or_insert(c);
-                    next[c] = !slack[c];
-                    worst = worst.max(v);
-                }
+            for (c, v) in violations(&g, &slack, thr) {
+                first.get_or_insert(c);
+                next[c] = !slack[c];
+                worst = worst.max(v);
             }
             violation = worst / scale;
             let flips = next.iter().zip(&slack).filter(|(a, b)| a != b).count();
@@ -929,19 +920,11 @@ impl NonsmoothCg {
                             },
                         )?;
                         if refinement.is_some() {
-                            let mut scale = 0.0f64;
-                            for (c, &e) in model.cables.iter().enumerate() {
-                                g[c] = el[e] + model.elements[e].e0;
-                                scale = scale.max(g[c].abs());
-                            }
-                            let thr = tol * scale;
+                            let scale = cable_strains(model, |e| el[e], &mut g);
                             let (mut flips, mut worst) = (0usize, 0.0f64);
-                            for c in 0..nc {
-                                let v = if slack[c] { g[c] } else { -g[c] };
-                                if v > thr {
-                                    flips += 1;
-                                    worst = worst.max(v / scale);
-                                }
+                            for (_, v) in violations(&g, &slack, tol * scale) {
+                                flips += 1;
+                                worst = worst.max(v / scale);
                             }
                             if flips > 0 && status == Status::Converged {
                                 status = Status::Stalled;
@@ -1025,6 +1008,26 @@ impl NonsmoothCg {
             }
         }
     }
+}
+
+/// Each cable's strain `g = e + e0` into `g`, from the elongation of its
+/// element; returns the largest `|g|` (the strain scale, positive).
+fn cable_strains(model: &Model, elongation: impl Fn(usize) -> f64, g: &mut [f64]) -> f64 {
+    let mut scale = 0.0f64;
+    for (c, &e) in model.cables.iter().enumerate() {
+        g[c] = elongation(e) + model.elements[e].e0;
+        scale = scale.max(g[c].abs());
+    }
+    scale.max(f64::MIN_POSITIVE)
+}
+
+/// The cables that violate complementarity by more than `thr`, with by how
+/// much: a slack cable with `λ = −g < −thr`, a taut one with `g < −thr`.
+fn violations<'a>(g: &'a [f64], slack: &'a [bool], thr: f64) -> impl Iterator<Item = (usize, f64)> + 'a {
+    g.iter().zip(slack).enumerate().filter_map(move |(c, (&g, &s))| {
+        let v = if s { g } else { -g };
+        (v > thr).then_some((c, v))
+    })
 }
 
 #[cfg(test)]
