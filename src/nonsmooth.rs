@@ -709,8 +709,9 @@ impl NonsmoothCg {
                 // Removing cables can leave a subdomain with a mechanism
                 // whose round-off pivot reads as indefinite: both are what
                 // the softened step is for. If the softened set-up fails
-                // too, that error is the structure's own.
-                Err(e @ (Error::Mechanism(_) | Error::IndefiniteSubdomain { .. })) => {
+                // too, that error is the structure's own; so is it at once
+                // when no cable is slack (softening would change nothing).
+                Err(e @ (Error::Mechanism(_) | Error::IndefiniteSubdomain { .. })) if slack.contains(&true) => {
                     if std::env::var_os("NSDD_NS_DEBUG").is_some() {
                         eprintln!("outer {outer}: the exact set-up failed ({e}); taking the softened step");
                     }

@@ -12,7 +12,7 @@ use nsdd::generate::{grid, tensegrity, tower, GridParams, TensegrityParams, Towe
 use nsdd::model::Model;
 use nsdd::result::SolveResult;
 use nsdd::scene::{LoadCase, LoadPath, Method, Scene, SceneBuilder};
-use nsdd::solve::solve;
+use nsdd::solve::{solve, SolveOptions};
 use std::path::Path;
 
 /// Free-dof displacement vector of a result.
@@ -168,6 +168,32 @@ fn tensegrity_grids_match_direct() {
     for n in [1, 2, 4, 8] {
         let r = check(&scene, n, 1e-8);
         assert!(r.slack.iter().any(|&s| s), "some cables go slack");
+    }
+}
+
+/// With geometric stiffness, 16 subdomains of the bundled tensegrity grid
+/// leave one holding compressed struts only: its stiffness is indefinite.
+/// That is the error, naming the subdomain; no cable is slack, so it is not
+/// dressed up as a mechanism of a slack set (it was: "when its 0 slack
+/// cables are removed (elements )").
+#[test]
+fn an_indefinite_subdomain_with_no_slack_cable_is_reported_as_such() {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/tensegrity-2x2.toml");
+    let scene = Scene::load(&path).unwrap();
+    let opts = SolveOptions {
+        method: Method::Cg,
+        subdomains: 16,
+        ..Default::default()
+    };
+    match solve(&scene, &opts) {
+        Err(Error::IndefiniteSubdomain { subdomain, message }) => {
+            assert!(subdomain < 16);
+            assert!(
+                message.contains("indefinite") && !message.contains("slack"),
+                "{message}"
+            );
+        }
+        other => panic!("{:?}", other.map(|r| r.status)),
     }
 }
 
