@@ -82,7 +82,7 @@ fn multilevel(max_iterations: usize) -> DdOptions {
         krylov: false,
         preconditioner: Default::default(),
         interface_scaling: Default::default(),
-        adaptive_threshold: 0.0,
+        adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
         ordering: Default::default(),
     }
 }

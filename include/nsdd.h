@@ -557,14 +557,26 @@ enum NsddStatus nsdd_options_set_interface_scaling(struct NsddOptions *options, 
  * Sets the threshold of `cg`'s adaptive macro space, overriding the
  * scene's `[solver] adaptive_threshold`: on every face, the jumps whose
  * local eigenvalue exceeds it become macro columns (worth it where stiff
- * bars hang on soft cables; 5 is a good start). 0 switches it off (the
- * default); other values must be finite and above 1, else
- * INVALID_ARGUMENT. Ignored by the other methods.
+ * bars hang on soft cables; 5 is a good start). 0 switches it off; other
+ * values must be finite and above 1, else INVALID_ARGUMENT. The default
+ * is automatic ([`nsdd_options_set_adaptive_threshold_auto`]). Ignored by
+ * the other methods.
  *
  * # Safety
  * `options` must be a live options handle.
  */
 enum NsddStatus nsdd_options_set_adaptive_threshold(struct NsddOptions *options, double threshold);
+
+/**
+ * Lets the solver choose the threshold of `cg`'s adaptive macro space
+ * (the scene's `adaptive_threshold = "auto"`, and the default): 5 where
+ * the elements' axial stiffnesses `EA/L` span 100× or more, off
+ * elsewhere. Overrides the scene's `[solver] adaptive_threshold`.
+ *
+ * # Safety
+ * `options` must be a live options handle.
+ */
+enum NsddStatus nsdd_options_set_adaptive_threshold_auto(struct NsddOptions *options);
 
 /**
  * Sets the automatic partitioner, overriding the scene's `[solver]

@@ -31,7 +31,9 @@ use crate::model::{Model, FIXED};
 use crate::operator::InterfaceOperator;
 use crate::outcome::{Outcome, Refinement, Status};
 use crate::scaling::InterfaceScaling;
-use crate::settings::{MethodConfig, OrderingChoice, Preconditioner, SearchDirection, SolverSettings};
+use crate::settings::{
+    AdaptiveThreshold, MethodConfig, OrderingChoice, Preconditioner, SearchDirection, SolverSettings,
+};
 use crate::subdomain::{InteriorProblem, SubdomainOperator};
 use faer::Mat;
 use rayon::prelude::*;
@@ -55,8 +57,9 @@ pub struct DdOptions {
     /// ([`crate::scaling`]; ignored by the stationary iteration).
     pub interface_scaling: InterfaceScaling,
     /// Eigenvalue threshold of the adaptive macro columns
-    /// ([`crate::adaptive`]); 0: none.
-    pub adaptive_threshold: f64,
+    /// ([`crate::adaptive`]); `Auto` is resolved from the model's element
+    /// stiffnesses at set-up (off for an algebraic problem).
+    pub adaptive_threshold: AdaptiveThreshold,
     /// Fill-reducing ordering of the subdomain and interior factors.
     pub ordering: OrderingChoice,
 }
@@ -376,6 +379,9 @@ pub struct DdStats {
     /// Macro columns the adaptive macro space added (included in
     /// `macro_unknowns`).
     pub adaptive_columns: usize,
+    /// The threshold of the adaptive macro space used (0: off; `"auto"`
+    /// resolved).
+    pub adaptive_threshold: f64,
     pub kernel_unknowns: usize,
     pub interface_entries: usize,
     /// Values stored in the subdomain factors...
@@ -575,6 +581,9 @@ impl DdSolver {
         placement: Placement,
     ) -> Result<DdSolver> {
         let t0 = Instant::now();
+        let mut opts = opts;
+        opts.adaptive_threshold =
+            AdaptiveThreshold::Value(opts.adaptive_threshold.resolve(model.elements.iter().map(|e| e.k)));
         let problem = DdProblem::from_model_reusing(model, dec, reused, placement, opts.ordering)?;
         let factor_s = t0.elapsed().as_secs_f64();
         let name_dof = |d: usize| {
@@ -708,6 +717,9 @@ impl DdSolver {
         let touched = |it: &IfaceState| local(it.lo).is_some() || local(it.hi).is_some();
         let mut n_macro = 0;
         let mut adaptive_columns = 0;
+        // Already resolved from the model where there is one; off for an
+        // algebraic problem, which has no element stiffnesses to judge by.
+        let adaptive_threshold = opts.adaptive_threshold.resolve(std::iter::empty());
         let mut adaptive_s = 0.0;
         if use_coarse {
             // Each side's kernel on the interface entries (column-major).
@@ -725,7 +737,7 @@ impl DdSolver {
             });
             // The adaptive macro space: each held subdomain's principal and
             // Neumann blocks on its faces, then one eigenproblem per face.
-            let adaptive_on = opts.adaptive_threshold > 0.0 && opts.krylov && !natural_only;
+            let adaptive_on = adaptive_threshold > 0.0 && opts.krylov && !natural_only;
             let t_adaptive = Instant::now();
             let (face_entries, face_sides) = if adaptive_on {
                 let entries = adaptive::face_entries(dec);
@@ -771,7 +783,7 @@ impl DdSolver {
                         let p = MacroBasis::interface_block(&points, &comp, &tlo, &thi);
                         match face_sides.get(i) {
                             Some([Some(lo), Some(hi)]) => {
-                                let (p, added) = adaptive::enrich(p, &face_entries[i], lo, hi, opts.adaptive_threshold);
+                                let (p, added) = adaptive::enrich(p, &face_entries[i], lo, hi, adaptive_threshold);
                                 n_adaptive.fetch_add(added, std::sync::atomic::Ordering::Relaxed);
                                 p
                             }
@@ -1033,6 +1045,7 @@ impl DdSolver {
             kernel_dims: kernel_dims.clone(),
             macro_unknowns: n_macro,
             adaptive_columns,
+            adaptive_threshold,
             adaptive_s,
             kernel_unknowns: alpha_off,
             interface_entries: dec.n_entries(),
@@ -1769,7 +1782,7 @@ pub(crate) fn cg_test_problem_on(scene: &crate::scene::Scene, subdomains: usize)
         krylov: true,
         preconditioner: Preconditioner::Dirichlet,
         interface_scaling: InterfaceScaling::Deluxe,
-        adaptive_threshold: 0.0,
+        adaptive_threshold: AdaptiveThreshold::OFF,
         ordering: Default::default(),
     };
     (model, dec, opts)
@@ -1839,7 +1852,7 @@ mod tests {
             })
         };
         let pooled: Vec<Option<PooledSubdomain>> = plain.into_pooled().into_iter().map(strip).collect();
-        opts.adaptive_threshold = 10.0;
+        opts.adaptive_threshold = AdaptiveThreshold::Value(10.0);
         let mut fresh = DdSolver::new_pooled(&model, &dec, opts.clone(), Vec::new(), Placement::Process).unwrap();
         assert!(fresh.stats.adaptive_columns > 0, "the threshold adds columns");
         let mut again = DdSolver::new_pooled(&model, &dec, opts.clone(), pooled, Placement::Process).unwrap();

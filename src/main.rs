@@ -19,7 +19,9 @@ use nsdd::comm::Placement;
 use nsdd::error::{Error, Result};
 use nsdd::generate;
 use nsdd::model::Model;
-use nsdd::scene::{InterfaceScaling, Method, OrderingChoice, Partitioner, Preconditioner, Scene, SearchDirection};
+use nsdd::scene::{
+    AdaptiveThreshold, InterfaceScaling, Method, OrderingChoice, Partitioner, Preconditioner, Scene, SearchDirection,
+};
 use nsdd::solve::{solve_in, SolveOptions};
 use nsdd::vtk;
 use report::{AccuracyOptions, Event, ScalingOptions};
@@ -102,6 +104,12 @@ fn parse_interface_scaling(s: &str) -> std::result::Result<InterfaceScaling, Str
     s.parse()
 }
 
+/// Parsed only: the range is checked with the other settings, whose error
+/// names `solver.adaptive_threshold`.
+fn parse_adaptive(s: &str) -> std::result::Result<AdaptiveThreshold, String> {
+    s.parse()
+}
+
 fn parse_d(s: &str) -> std::result::Result<SearchDirection, String> {
     let d: SearchDirection = s.parse()?;
     match d {
@@ -179,9 +187,9 @@ struct SolveArgs {
     /// Weights of cg's preconditioner across interfaces: economic_deluxe (default: deluxe, the blocks of large faces from the interior near them), deluxe (every block exact), contrast, multiplicity, stiffness or none
     #[arg(long, value_name = "S", value_parser = parse_interface_scaling)]
     interface_scaling: Option<InterfaceScaling>,
-    /// Adaptive macro space of cg: eigenvalue threshold above which a face's jump modes become macro columns (0: none, the default; try 5 where stiff bars hang on soft cables)
-    #[arg(long, value_name = "THETA")]
-    adaptive_threshold: Option<f64>,
+    /// Adaptive macro space of cg: eigenvalue threshold above which a face's jump modes become macro columns; 0: none; auto (the default): 5 where the elements' EA/L span 100x or more (stiff bars on soft cables), else none
+    #[arg(long, value_name = "THETA|auto", value_parser = parse_adaptive, allow_hyphen_values = true)]
+    adaptive_threshold: Option<AdaptiveThreshold>,
     /// Write the result JSON here (also when not converged: its `status` says why; not after an error or divergence)
     #[arg(long, value_name = "FILE")]
     out: Option<PathBuf>,

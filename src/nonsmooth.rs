@@ -55,6 +55,7 @@ use crate::partition::Partition;
 use crate::result::HistoryEntry;
 use crate::scaling::InterfaceScaling;
 use crate::scene::{OrderingChoice, Preconditioner, SearchDirection};
+use crate::settings::AdaptiveThreshold;
 use std::collections::{HashMap, HashSet};
 
 /// Stiffness fraction kept by slack cables in a step whose slack set alone
@@ -182,7 +183,7 @@ pub struct NonsmoothOptions {
     pub preconditioner: Preconditioner,
     pub interface_scaling: InterfaceScaling,
     /// See [`crate::settings::SolverSettings::adaptive_threshold`].
-    pub adaptive_threshold: f64,
+    pub adaptive_threshold: AdaptiveThreshold,
     /// Fill-reducing ordering of the subdomain and interior factors.
     pub ordering: OrderingChoice,
 }
@@ -458,6 +459,11 @@ impl NonsmoothCg {
                 "the decomposition does not belong to this model",
             ));
         }
+        // `"auto"` judged once, on every element: the steps' structures
+        // lose their slack cables, and the choice should not move with them.
+        let mut opts = opts;
+        opts.adaptive_threshold =
+            AdaptiveThreshold::Value(opts.adaptive_threshold.resolve(model.elements.iter().map(|e| e.k)));
         Ok(NonsmoothCg {
             dec,
             opts,

@@ -529,7 +529,7 @@ fn method_options(
         search_direction: d,
         preconditioner,
         interface_scaling: Default::default(),
-        adaptive_threshold: 0.0,
+        adaptive_threshold: Default::default(),
         partitioner: scene.partitioner,
         ordering: scene.ordering,
     }

@@ -77,8 +77,8 @@ impl Effects {
 }
 
 pub use crate::settings::{
-    InterfaceScaling, Method, MethodConfig, OrderingChoice, Partitioner, Preconditioner, SearchDirection,
-    SolverSettings,
+    AdaptiveThreshold, InterfaceScaling, Method, MethodConfig, OrderingChoice, Partitioner, Preconditioner,
+    SearchDirection, SolverSettings,
 };
 
 /// `[nodes]`: columnar coordinates.

@@ -136,6 +136,130 @@ impl std::str::FromStr for SearchDirection {
     }
 }
 
+/// The threshold of `cg`'s adaptive macro space ([`crate::adaptive`]):
+/// `"auto"` (the default) or a number, 0 being off.
+///
+/// `Auto` turns the space on, at [`AUTO_ADAPTIVE_THRESHOLD`], where the
+/// elements' axial stiffnesses `EA/L` span [`AUTO_ADAPTIVE_CONTRAST`] or
+/// more (stiff bars hanging on soft cables: there the face eigenproblems
+/// pay for themselves many times over), and leaves it off elsewhere, where
+/// they cost more set-up than they save iterations.
+///
+/// ```
+/// use nsdd::settings::AdaptiveThreshold;
+/// assert_eq!("auto".parse::<AdaptiveThreshold>(), Ok(AdaptiveThreshold::Auto));
+/// assert_eq!("5".parse::<AdaptiveThreshold>(), Ok(AdaptiveThreshold::Value(5.0)));
+/// assert!(AdaptiveThreshold::OFF.is_valid());
+/// assert!(!AdaptiveThreshold::Value(0.5).is_valid());
+/// // The choice for the elements' stiffnesses `EA/L`:
+/// assert_eq!(AdaptiveThreshold::Auto.resolve([1.0, 2.0, 20.0]), 0.0);
+/// assert_eq!(AdaptiveThreshold::Auto.resolve([1.0, 1e4]), 5.0);
+/// assert_eq!(AdaptiveThreshold::Value(12.0).resolve([1.0, 1e4]), 12.0);
+/// ```
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub enum AdaptiveThreshold {
+    #[default]
+    Auto,
+    /// 0 (off) or a finite number above 1.
+    Value(f64),
+}
+
+/// The threshold `"auto"` uses where it turns the adaptive space on.
+pub const AUTO_ADAPTIVE_THRESHOLD: f64 = 5.0;
+
+/// The spread of the elements' `EA/L` (largest over smallest) from which
+/// `"auto"` turns the adaptive space on. Generated grids spread 10–20,
+/// uniform towers about 2; a tower whose bars are 1e4 × its cables, 1.6e4.
+pub const AUTO_ADAPTIVE_CONTRAST: f64 = 100.0;
+
+impl AdaptiveThreshold {
+    /// No adaptive columns.
+    pub const OFF: AdaptiveThreshold = AdaptiveThreshold::Value(0.0);
+
+    /// 0 (off) or finite and above 1 (every face eigenvalue is at least 1);
+    /// `Auto` always.
+    pub fn is_valid(self) -> bool {
+        match self {
+            AdaptiveThreshold::Auto => true,
+            AdaptiveThreshold::Value(t) => adaptive_threshold_is_valid(t),
+        }
+    }
+
+    pub fn is_auto(&self) -> bool {
+        *self == AdaptiveThreshold::Auto
+    }
+
+    /// The threshold to use (0: off) for a structure whose elements have
+    /// the axial stiffnesses `EA/L` in `stiffnesses` (zeros ignored).
+    pub fn resolve(self, stiffnesses: impl IntoIterator<Item = f64>) -> f64 {
+        match self {
+            AdaptiveThreshold::Value(t) => t,
+            AdaptiveThreshold::Auto => {
+                let (lo, hi) = stiffnesses
+                    .into_iter()
+                    .filter(|k| *k > 0.0 && k.is_finite())
+                    .fold((f64::INFINITY, 0.0f64), |(lo, hi), k| (lo.min(k), hi.max(k)));
+                if hi >= AUTO_ADAPTIVE_CONTRAST * lo {
+                    AUTO_ADAPTIVE_THRESHOLD
+                } else {
+                    0.0
+                }
+            }
+        }
+    }
+}
+
+impl std::fmt::Display for AdaptiveThreshold {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            AdaptiveThreshold::Auto => f.write_str("auto"),
+            AdaptiveThreshold::Value(t) => write!(f, "{t}"),
+        }
+    }
+}
+
+impl Serialize for AdaptiveThreshold {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> std::result::Result<S::Ok, S::Error> {
+        match self {
+            AdaptiveThreshold::Auto => s.serialize_str("auto"),
+            AdaptiveThreshold::Value(v) => s.serialize_f64(*v),
+        }
+    }
+}
+
+impl<'de> Deserialize<'de> for AdaptiveThreshold {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> std::result::Result<Self, D::Error> {
+        #[derive(Deserialize)]
+        #[serde(untagged)]
+        enum Raw {
+            Num(f64),
+            Int(i64),
+            Str(String),
+        }
+        match Raw::deserialize(d)? {
+            Raw::Num(v) => Ok(AdaptiveThreshold::Value(v)),
+            Raw::Int(v) => Ok(AdaptiveThreshold::Value(v as f64)),
+            Raw::Str(s) => s.parse().map_err(|_| {
+                serde::de::Error::custom(format!(
+                    "solver.adaptive_threshold: expected \"auto\" or a number, got \"{s}\""
+                ))
+            }),
+        }
+    }
+}
+
+impl std::str::FromStr for AdaptiveThreshold {
+    type Err = String;
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        if s == "auto" {
+            return Ok(AdaptiveThreshold::Auto);
+        }
+        s.parse::<f64>()
+            .map(AdaptiveThreshold::Value)
+            .map_err(|_| format!("adaptive threshold must be \"auto\" or a number, got '{s}'"))
+    }
+}
+
 /// `[solver]` settings. Command-line flags override them.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -163,10 +287,11 @@ pub struct SolverSettings {
     pub interface_scaling: InterfaceScaling,
     /// Adaptive macro space of `cg` (ignored by the other methods): on
     /// every face, the jumps whose local eigenvalue exceeds this threshold
-    /// become macro columns (`crate::adaptive`); 0 (the default, not
-    /// written): none. Worth it where stiff parts hang on soft ones.
-    #[serde(default, skip_serializing_if = "is_zero")]
-    pub adaptive_threshold: f64,
+    /// become macro columns (`crate::adaptive`); 0: none; `"auto"` (the
+    /// default, not written): on where stiff parts hang on soft ones
+    /// ([`AdaptiveThreshold`]).
+    #[serde(default, skip_serializing_if = "AdaptiveThreshold::is_auto")]
+    pub adaptive_threshold: AdaptiveThreshold,
     /// Automatic partition into `subdomains` (ignored when the elements
     /// carry their subdomain). Not written when it is the default, so that
     /// scenes stay readable by versions without the field.
@@ -274,10 +399,6 @@ pub(crate) fn adaptive_threshold_is_valid(theta: f64) -> bool {
     theta == 0.0 || (theta > 1.0 && theta.is_finite())
 }
 
-fn is_zero(v: &f64) -> bool {
-    *v == 0.0
-}
-
 fn is_auto(subdomains: &usize) -> bool {
     *subdomains == 0
 }
@@ -298,7 +419,7 @@ impl Default for SolverSettings {
             search_direction: SearchDirection::Auto,
             preconditioner: Preconditioner::default(),
             interface_scaling: InterfaceScaling::default(),
-            adaptive_threshold: 0.0,
+            adaptive_threshold: AdaptiveThreshold::Auto,
             partitioner: Partitioner::default(),
             ordering: OrderingChoice::default(),
         }
@@ -321,11 +442,11 @@ impl SolverSettings {
             return Err(Error::input("solver.max_iterations", None, "must be at least 1"));
         }
         let theta = self.adaptive_threshold;
-        if !adaptive_threshold_is_valid(theta) {
+        if !theta.is_valid() {
             return Err(Error::input(
                 "solver.adaptive_threshold",
                 None,
-                format!("must be 0 (no adaptive macro columns) or a finite number above 1 (the eigenvalues are at least 1), got {theta}"),
+                format!("must be \"auto\", 0 (no adaptive macro columns) or a finite number above 1 (the eigenvalues are at least 1), got {theta}"),
             ));
         }
         if let SearchDirection::Value(d) = self.search_direction {

@@ -498,11 +498,16 @@ pub fn solve_in(
         Prepared::Direct(_) => None,
     };
     if let Some(dd) = last_dd {
-        if opts.adaptive_threshold > 0.0 {
-            let st = dd.stats();
+        let st = dd.stats();
+        if st.adaptive_threshold > 0.0 {
+            let why = if opts.adaptive_threshold.is_auto() {
+                " (\"auto\": the elements' EA/L span 100x or more)"
+            } else {
+                ""
+            };
             notes.push(format!(
-                "adaptive macro space (threshold {}): {} columns added on the faces, {} macro unknowns in all",
-                opts.adaptive_threshold, st.adaptive_columns, st.macro_unknowns
+                "adaptive macro space (threshold {}): {} columns added on the faces, {} macro unknowns in all{why}",
+                st.adaptive_threshold, st.adaptive_columns, st.macro_unknowns
             ));
         }
         if let Some(t) = dd.seam().traffic_by_rank() {

@@ -982,7 +982,7 @@ fn scene_level_cg_matches_rust_api_bit_for_bit() {
             NsddInterfaceScaling::EconomicDeluxe as u32,
         ));
         // The adaptive macro space, bit for bit as in Rust, then off again.
-        opts.adaptive_threshold = 10.0;
+        opts.adaptive_threshold = nsdd::scene::AdaptiveThreshold::Value(10.0);
         let want = solve(&big, &opts).unwrap();
         ok(nsdd_options_set_adaptive_threshold(o, 10.0));
         let (r, u) = solve_displacements(s, o);
@@ -999,7 +999,26 @@ fn scene_level_cg_matches_rust_api_bit_for_bit() {
                 "adaptive_threshold",
             );
         }
-        opts.adaptive_threshold = 0.0;
+        // "auto" (the default) as in Rust: off on this grid (EA/L spread
+        // under 100).
+        opts.adaptive_threshold = nsdd::scene::AdaptiveThreshold::Auto;
+        let want = solve(&big, &opts).unwrap();
+        assert!(
+            !want.notes.iter().any(|n| n.starts_with("adaptive")),
+            "{:?}",
+            want.notes
+        );
+        ok(nsdd_options_set_adaptive_threshold_auto(o));
+        let (r, u) = solve_displacements(s, o);
+        let wu: Vec<f64> = want.displacements.iter().flatten().copied().collect();
+        assert_eq!(bits(&u), bits(&wu));
+        nsdd_result_destroy(r);
+        expect_err(
+            nsdd_options_set_adaptive_threshold_auto(null_mut()),
+            NsddStatus::NullPointer,
+            "options",
+        );
+        opts.adaptive_threshold = nsdd::scene::AdaptiveThreshold::OFF;
         ok(nsdd_options_set_adaptive_threshold(o, 0.0));
         nsdd_scene_destroy(s);
         let grid = cstr(root().join("scenes/grid-8x8.toml").to_str().unwrap());
@@ -1105,7 +1124,7 @@ fn dd_options(scene_file: &str) -> DdOptions {
         krylov: false,
         preconditioner: Default::default(),
         interface_scaling: Default::default(),
-        adaptive_threshold: 0.0,
+        adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
         ordering: Default::default(),
     }
 }

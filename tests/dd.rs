@@ -131,7 +131,7 @@ fn monolevel_solves_singular_subdomains_with_the_natural_coarse_space() {
                 krylov: false,
                 preconditioner: Default::default(),
                 interface_scaling: Default::default(),
-                adaptive_threshold: 0.0,
+                adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
                 ordering: Default::default(),
             },
         )
@@ -168,7 +168,7 @@ fn several_load_cases_reuse_one_setup() {
             krylov: false,
             preconditioner: Default::default(),
             interface_scaling: Default::default(),
-            adaptive_threshold: 0.0,
+            adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
             ordering: Default::default(),
         },
     )
@@ -415,7 +415,7 @@ fn interface_cg_refuses_unilateral_cables() {
         search_direction: SearchDirection::Auto,
         preconditioner: Preconditioner::Dirichlet,
         interface_scaling: Default::default(),
-        adaptive_threshold: 0.0,
+        adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
         ordering: Default::default(),
     };
     match DdSolver::new(&model, &dec, o) {
@@ -448,7 +448,7 @@ fn large_plate_coarse_problem_stays_exact() {
             krylov: true,
             preconditioner: Default::default(),
             interface_scaling: Default::default(),
-            adaptive_threshold: 0.0,
+            adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
             ordering: Default::default(),
         },
     )

@@ -38,7 +38,7 @@ fn multilevel(model: &Model, dec: &Decomposition) -> DdSolver {
             krylov: false,
             preconditioner: Default::default(),
             interface_scaling: Default::default(),
-            adaptive_threshold: 0.0,
+            adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
             ordering: Default::default(),
         },
     )

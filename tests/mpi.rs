@@ -253,7 +253,7 @@ fn adaptive_macro_space_on_2_3_ranks() {
         unilateral: false,
         ..Default::default()
     });
-    scene.solver.adaptive_threshold = 5.0;
+    scene.solver.adaptive_threshold = nsdd::scene::AdaptiveThreshold::Value(5.0);
     check_all(&scene, "adaptive", &[(Method::Cg, 4)], &[2, 3]);
 }
 

@@ -63,7 +63,7 @@ fn extra_iterations_allocate_nothing() {
             krylov,
             preconditioner,
             interface_scaling: Default::default(),
-            adaptive_threshold: 0.0,
+            adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
             ordering: Default::default(),
         };
         let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();
@@ -118,7 +118,7 @@ fn nonsmooth_cg_iterations_allocate_nothing() {
         max_iterations: 10_000,
         preconditioner: Preconditioner::Dirichlet,
         interface_scaling: Default::default(),
-        adaptive_threshold: 0.0,
+        adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
         ordering: Default::default(),
     };
     let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();

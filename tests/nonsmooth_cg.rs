@@ -387,7 +387,7 @@ fn unchanged_subdomains_are_not_refactored() {
             max_iterations: 100_000,
             preconditioner: Default::default(),
             interface_scaling: Default::default(),
-            adaptive_threshold: 0.0,
+            adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
             ordering: Default::default(),
         },
     )
@@ -645,7 +645,7 @@ fn a_cable_set_that_does_not_settle_is_reported() {
         max_iterations: 100_000,
         preconditioner: Default::default(),
         interface_scaling: Default::default(),
-        adaptive_threshold: 0.0,
+        adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
         ordering: Default::default(),
     };
     let f = model.load_cases[0].clone();

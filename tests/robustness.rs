@@ -750,7 +750,7 @@ fn kernel_dims(scene: &Scene, subdomains: usize) -> Vec<usize> {
             krylov: false,
             preconditioner: Default::default(),
             interface_scaling: Default::default(),
-            adaptive_threshold: 0.0,
+            adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
             ordering: Default::default(),
         },
     )
@@ -840,7 +840,7 @@ fn resolving_reuses_factorizations_bit_identically() {
         krylov: false,
         preconditioner: Default::default(),
         interface_scaling: Default::default(),
-        adaptive_threshold: 0.0,
+        adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
         ordering: Default::default(),
     };
     let mut dd = DdSolver::new(&model, &dec, o.clone()).unwrap();
@@ -1343,7 +1343,7 @@ fn solve_options_given_in_rust_are_checked_like_the_scene() {
             search_direction,
             preconditioner: Default::default(),
             interface_scaling: Default::default(),
-            adaptive_threshold: 0.0,
+            adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
             partitioner: Default::default(),
             ordering: Default::default(),
         };

@@ -142,7 +142,7 @@ fn builder_scene() -> Scene {
         search_direction: SearchDirection::Value(12.5),
         preconditioner: nsdd::scene::Preconditioner::Lumped,
         interface_scaling: nsdd::scene::InterfaceScaling::Contrast,
-        adaptive_threshold: 12.0,
+        adaptive_threshold: nsdd::scene::AdaptiveThreshold::Value(12.0),
         partitioner: nsdd::scene::Partitioner::Metis,
         ordering: Default::default(),
     });

@@ -454,9 +454,10 @@ pub unsafe extern "C" fn nsdd_options_set_interface_scaling(options: *mut NsddOp
 /// Sets the threshold of `cg`'s adaptive macro space, overriding the
 /// scene's `[solver] adaptive_threshold`: on every face, the jumps whose
 /// local eigenvalue exceeds it become macro columns (worth it where stiff
-/// bars hang on soft cables; 5 is a good start). 0 switches it off (the
-/// default); other values must be finite and above 1, else
-/// INVALID_ARGUMENT. Ignored by the other methods.
+/// bars hang on soft cables; 5 is a good start). 0 switches it off; other
+/// values must be finite and above 1, else INVALID_ARGUMENT. The default
+/// is automatic ([`nsdd_options_set_adaptive_threshold_auto`]). Ignored by
+/// the other methods.
 ///
 /// # Safety
 /// `options` must be a live options handle.
@@ -469,7 +470,23 @@ pub unsafe extern "C" fn nsdd_options_set_adaptive_threshold(options: *mut NsddO
                 "adaptive_threshold = {threshold}: expected 0 (off) or a finite number above 1"
             )));
         }
-        o.opts.adaptive_threshold = threshold;
+        o.opts.adaptive_threshold = crate::settings::AdaptiveThreshold::Value(threshold);
+        Ok(())
+    })
+}
+
+/// Lets the solver choose the threshold of `cg`'s adaptive macro space
+/// (the scene's `adaptive_threshold = "auto"`, and the default): 5 where
+/// the elements' axial stiffnesses `EA/L` span 100× or more, off
+/// elsewhere. Overrides the scene's `[solver] adaptive_threshold`.
+///
+/// # Safety
+/// `options` must be a live options handle.
+#[unsafe(no_mangle)]
+pub unsafe extern "C" fn nsdd_options_set_adaptive_threshold_auto(options: *mut NsddOptions) -> NsddStatus {
+    ffi_guard(|| {
+        let o = unsafe { handle_mut(options, "options")? };
+        o.opts.adaptive_threshold = crate::settings::AdaptiveThreshold::Auto;
         Ok(())
     })
 }

@@ -28,7 +28,7 @@ pub fn opts(method: Method, subdomains: usize, tol: f64) -> SolveOptions {
         search_direction: SearchDirection::Auto,
         preconditioner: Default::default(),
         interface_scaling: Default::default(),
-        adaptive_threshold: 0.0,
+        adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
         partitioner: Default::default(),
         ordering: Default::default(),
     }
