@@ -93,46 +93,76 @@ pub enum SearchDirection {
     Value(f64),
 }
 
+/// `None` for `"auto"`: how a scene writes a setting with an automatic
+/// choice (`"auto"` or a number), one reading for all of them.
+fn serialize_auto_or<S: serde::Serializer>(v: Option<f64>, s: S) -> std::result::Result<S::Ok, S::Error> {
+    match v {
+        None => s.serialize_str("auto"),
+        Some(v) => s.serialize_f64(v),
+    }
+}
+
+/// `"auto"` (`None`) or a number (also written as a string); the error
+/// names `field`.
+fn deserialize_auto_or<'de, D: serde::Deserializer<'de>>(
+    d: D,
+    field: &str,
+) -> std::result::Result<Option<f64>, D::Error> {
+    #[derive(Deserialize)]
+    #[serde(untagged)]
+    enum Raw {
+        Num(f64),
+        Int(i64),
+        Str(String),
+    }
+    match Raw::deserialize(d)? {
+        Raw::Num(v) => Ok(Some(v)),
+        Raw::Int(v) => Ok(Some(v as f64)),
+        Raw::Str(s) => parse_auto_or(&s)
+            .ok_or_else(|| serde::de::Error::custom(format!("{field}: expected \"auto\" or a number, got \"{s}\""))),
+    }
+}
+
+/// `Some(None)` for `"auto"`, `Some(Some(v))` for a number, `None` else.
+fn parse_auto_or(s: &str) -> Option<Option<f64>> {
+    if s == "auto" {
+        Some(None)
+    } else {
+        s.parse::<f64>().ok().map(Some)
+    }
+}
+
+impl SearchDirection {
+    fn value(self) -> Option<f64> {
+        match self {
+            SearchDirection::Auto => None,
+            SearchDirection::Value(v) => Some(v),
+        }
+    }
+
+    fn from_value(v: Option<f64>) -> SearchDirection {
+        v.map_or(SearchDirection::Auto, SearchDirection::Value)
+    }
+}
+
 impl Serialize for SearchDirection {
     fn serialize<S: serde::Serializer>(&self, s: S) -> std::result::Result<S::Ok, S::Error> {
-        match self {
-            SearchDirection::Auto => s.serialize_str("auto"),
-            SearchDirection::Value(v) => s.serialize_f64(*v),
-        }
+        serialize_auto_or(self.value(), s)
     }
 }
 
 impl<'de> Deserialize<'de> for SearchDirection {
     fn deserialize<D: serde::Deserializer<'de>>(d: D) -> std::result::Result<Self, D::Error> {
-        #[derive(Deserialize)]
-        #[serde(untagged)]
-        enum Raw {
-            Num(f64),
-            Int(i64),
-            Str(String),
-        }
-        match Raw::deserialize(d)? {
-            Raw::Num(v) => Ok(SearchDirection::Value(v)),
-            Raw::Int(v) => Ok(SearchDirection::Value(v as f64)),
-            Raw::Str(s) if s == "auto" => Ok(SearchDirection::Auto),
-            Raw::Str(s) => s.parse::<f64>().map(SearchDirection::Value).map_err(|_| {
-                serde::de::Error::custom(format!(
-                    "solver.search_direction: expected \"auto\" or a number, got \"{s}\""
-                ))
-            }),
-        }
+        deserialize_auto_or(d, "solver.search_direction").map(SearchDirection::from_value)
     }
 }
 
 impl std::str::FromStr for SearchDirection {
     type Err = String;
     fn from_str(s: &str) -> std::result::Result<Self, String> {
-        if s == "auto" {
-            return Ok(SearchDirection::Auto);
-        }
-        s.parse::<f64>()
-            .map(SearchDirection::Value)
-            .map_err(|_| format!("search direction must be \"auto\" or a number, got '{s}'"))
+        parse_auto_or(s)
+            .map(SearchDirection::from_value)
+            .ok_or_else(|| format!("search direction must be \"auto\" or a number, got '{s}'"))
     }
 }
 
@@ -218,45 +248,37 @@ impl std::fmt::Display for AdaptiveThreshold {
     }
 }
 
+impl AdaptiveThreshold {
+    fn value(self) -> Option<f64> {
+        match self {
+            AdaptiveThreshold::Auto => None,
+            AdaptiveThreshold::Value(v) => Some(v),
+        }
+    }
+
+    fn from_value(v: Option<f64>) -> AdaptiveThreshold {
+        v.map_or(AdaptiveThreshold::Auto, AdaptiveThreshold::Value)
+    }
+}
+
 impl Serialize for AdaptiveThreshold {
     fn serialize<S: serde::Serializer>(&self, s: S) -> std::result::Result<S::Ok, S::Error> {
-        match self {
-            AdaptiveThreshold::Auto => s.serialize_str("auto"),
-            AdaptiveThreshold::Value(v) => s.serialize_f64(*v),
-        }
+        serialize_auto_or(self.value(), s)
     }
 }
 
 impl<'de> Deserialize<'de> for AdaptiveThreshold {
     fn deserialize<D: serde::Deserializer<'de>>(d: D) -> std::result::Result<Self, D::Error> {
-        #[derive(Deserialize)]
-        #[serde(untagged)]
-        enum Raw {
-            Num(f64),
-            Int(i64),
-            Str(String),
-        }
-        match Raw::deserialize(d)? {
-            Raw::Num(v) => Ok(AdaptiveThreshold::Value(v)),
-            Raw::Int(v) => Ok(AdaptiveThreshold::Value(v as f64)),
-            Raw::Str(s) => s.parse().map_err(|_| {
-                serde::de::Error::custom(format!(
-                    "solver.adaptive_threshold: expected \"auto\" or a number, got \"{s}\""
-                ))
-            }),
-        }
+        deserialize_auto_or(d, "solver.adaptive_threshold").map(AdaptiveThreshold::from_value)
     }
 }
 
 impl std::str::FromStr for AdaptiveThreshold {
     type Err = String;
     fn from_str(s: &str) -> std::result::Result<Self, String> {
-        if s == "auto" {
-            return Ok(AdaptiveThreshold::Auto);
-        }
-        s.parse::<f64>()
-            .map(AdaptiveThreshold::Value)
-            .map_err(|_| format!("adaptive threshold must be \"auto\" or a number, got '{s}'"))
+        parse_auto_or(s)
+            .map(AdaptiveThreshold::from_value)
+            .ok_or_else(|| format!("adaptive threshold must be \"auto\" or a number, got '{s}'"))
     }
 }
 
