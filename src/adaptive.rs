@@ -23,9 +23,18 @@ use crate::coarse::MACRO_RANK_RTOL;
 use crate::dd::FaceBlock;
 use crate::decomposition::Decomposition;
 use crate::error::{Error, Result};
+use crate::model::Model;
+use crate::settings::AdaptiveThreshold;
 use crate::subdomain::{orthonormal_columns, InteriorProblem, SubdomainOperator};
 use faer::Mat;
 use rayon::prelude::*;
+
+/// `threshold` with `"auto"` decided for `model` (from its elements'
+/// axial stiffnesses `EA/L`, [`AdaptiveThreshold::resolve`]): what a set-up
+/// uses.
+pub fn threshold_for(threshold: AdaptiveThreshold, model: &Model) -> AdaptiveThreshold {
+    AdaptiveThreshold::Value(threshold.resolve(model.elements.iter().map(|e| e.k)))
+}
 
 /// What one side brings to the eigenproblem of a face: the principal block
 /// `S_k` and the Neumann block `S̃_k` on the face's entries.

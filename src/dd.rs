@@ -582,8 +582,7 @@ impl DdSolver {
     ) -> Result<DdSolver> {
         let t0 = Instant::now();
         let mut opts = opts;
-        opts.adaptive_threshold =
-            AdaptiveThreshold::Value(opts.adaptive_threshold.resolve(model.elements.iter().map(|e| e.k)));
+        opts.adaptive_threshold = adaptive::threshold_for(opts.adaptive_threshold, model);
         let problem = DdProblem::from_model_reusing(model, dec, reused, placement, opts.ordering)?;
         let factor_s = t0.elapsed().as_secs_f64();
         let name_dof = |d: usize| {

@@ -462,8 +462,7 @@ impl NonsmoothCg {
         // `"auto"` judged once, on every element: the steps' structures
         // lose their slack cables, and the choice should not move with them.
         let mut opts = opts;
-        opts.adaptive_threshold =
-            AdaptiveThreshold::Value(opts.adaptive_threshold.resolve(model.elements.iter().map(|e| e.k)));
+        opts.adaptive_threshold = crate::adaptive::threshold_for(opts.adaptive_threshold, model);
         Ok(NonsmoothCg {
             dec,
             opts,
