@@ -33,6 +33,12 @@ pub struct Element {
 }
 
 impl Element {
+    /// The axial force `k (e + e0)` at elongation `e` (tension positive),
+    /// as if the element were taut.
+    pub fn tension(&self, elongation: f64) -> f64 {
+        self.k * (elongation + self.e0)
+    }
+
     /// The 3×3 block `k n nᵀ + g (I − n nᵀ)`; the element matrix is
     /// `[[G, −G], [−G, G]]` on the dofs of `(a, b)`.
     pub fn block(&self) -> [[f64; 3]; 3] {
@@ -343,7 +349,7 @@ impl Model {
         (0..self.elements.len())
             .map(|e| {
                 let el = &self.elements[e];
-                let t = el.k * (elongations[e] + el.e0);
+                let t = el.tension(elongations[e]);
                 if !el.unilateral {
                     t
                 } else if slack[e] {

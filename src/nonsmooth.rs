@@ -902,11 +902,10 @@ impl NonsmoothCg {
                             slack_element[e] = slack[c];
                         }
                         let tension = |e: usize, x: f64| {
-                            let el = &model.elements[e];
                             if slack_element[e] {
                                 0.0
                             } else {
-                                el.k * (x + el.e0)
+                                model.elements[e].tension(x)
                             }
                         };
                         let dec = step.dec.as_ref().unwrap_or(&self.dec);

@@ -209,7 +209,7 @@ impl Prepared {
                 if model.cables.is_empty() {
                     let (u, history) = (&mut out.u, &mut out.history);
                     if let Some(elongations) = out.elongations.as_mut() {
-                        let tension = |e: usize, x: f64| model.elements[e].k * (x + model.elements[e].e0);
+                        let tension = |e: usize, x: f64| model.elements[e].tension(x);
                         out.refinement = dd.refine_equilibrium(
                             model,
                             dec,
