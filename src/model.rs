@@ -42,13 +42,21 @@ impl Element {
     /// The 3×3 block `k n nᵀ + g (I − n nᵀ)`; the element matrix is
     /// `[[G, −G], [−G, G]]` on the dofs of `(a, b)`.
     pub fn block(&self) -> [[f64; 3]; 3] {
+        self.block_with_axial(self.k)
+    }
+
+    /// [`Self::block`] with axial stiffness `k` instead of the element's
+    /// own: `k n nᵀ + g (I − n nᵀ)`. A slack cable is `k = 0`: it keeps its
+    /// geometric stiffness, which comes from the prestress `t0` and is part
+    /// of the `K` that never changes as cables go slack (docs/design.md §1).
+    pub fn block_with_axial(&self, k: f64) -> [[f64; 3]; 3] {
         let n = self.dir;
         let mut g = [[0.0; 3]; 3];
         for i in 0..3 {
             for j in 0..3 {
                 let nn = n[i] * n[j];
                 let id = if i == j { 1.0 } else { 0.0 };
-                g[i][j] = self.k * nn + self.geo * (id - nn);
+                g[i][j] = k * nn + self.geo * (id - nn);
             }
         }
         g
@@ -302,9 +310,22 @@ impl Model {
         elements: &[usize],
         local: impl Fn(usize) -> Option<usize>,
     ) -> Vec<(usize, usize, f64)> {
+        self.stiffness_triplets_with_axial(elements, local, 1.0)
+    }
+
+    /// [`Self::stiffness_triplets`] with every element's axial stiffness
+    /// scaled by `axial` and its geometric stiffness kept: what slack
+    /// (`axial = 0`) or softened cables still contribute to `K`.
+    pub fn stiffness_triplets_with_axial(
+        &self,
+        elements: &[usize],
+        local: impl Fn(usize) -> Option<usize>,
+        axial: f64,
+    ) -> Vec<(usize, usize, f64)> {
         let mut t = Vec::with_capacity(elements.len() * 21);
         for &e in elements {
-            let g = self.elements[e].block();
+            let el = &self.elements[e];
+            let g = el.block_with_axial(axial * el.k);
             let dofs = self.element_dofs(e);
             let loc: [Option<usize>; 6] = std::array::from_fn(|i| if dofs[i] == FIXED { None } else { local(dofs[i]) });
             for i in 0..6 {

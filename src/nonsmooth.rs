@@ -31,10 +31,11 @@
 //! kept, so load steps and load cases whose set does not change cost no
 //! set-up.
 //!
-//! A softened step keeps a slack cable's geometric stiffness `t0 / L`, an
-//! exact one drops the cable altogether (the direct solver's refactoring
-//! path; its Schur-complement path keeps `t0 / L`: the two differ only
-//! with `geometric_stiffness` on).
+//! Every step keeps a slack cable's geometric stiffness `t0 / L` (the
+//! prestress's `K_G` does not change as cables go slack, docs/design.md
+//! §1, and both paths of the direct solver keep it too); an exact step
+//! drops the axial stiffness, and the cable itself where it has no
+//! geometric stiffness.
 //!
 //! `NSDD_NS_DEBUG=1` prints one line per outer step (set size, inner
 //! tolerance and iterations, set-up and CG time, coarse sizes) to stderr,
@@ -409,12 +410,25 @@ fn reduced_problem(
     for (c, &e) in model.cables.iter().enumerate() {
         is_slack[e] = slack[c];
     }
-    let keep: Vec<usize> = (0..model.elements.len()).filter(|&e| !is_slack[e]).collect();
+    // A slack cable with geometric stiffness stays, with that stiffness
+    // alone: `K_G` is part of the `K` that never changes (docs/design.md
+    // §1), as on the direct solver's paths.
+    let keep: Vec<usize> = (0..model.elements.len())
+        .filter(|&e| !is_slack[e] || model.elements[e].geo != 0.0)
+        .collect();
     let mut m = model.clone();
-    m.elements = keep.iter().map(|&e| model.elements[e].clone()).collect();
-    for el in m.elements.iter_mut() {
-        el.unilateral = false;
-    }
+    m.elements = keep
+        .iter()
+        .map(|&e| {
+            let mut el = model.elements[e].clone();
+            el.unilateral = false;
+            if is_slack[e] {
+                // No axial stiffness, hence no tension and no prestrain load.
+                el.k = 0.0;
+            }
+            el
+        })
+        .collect();
     m.cables.clear();
     m.effects.unilateral_cables = false;
     let mut used = vec![false; model.coords.len()];
