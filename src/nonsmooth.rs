@@ -396,6 +396,29 @@ fn mechanism_message(model: &Model, slack: &[bool]) -> String {
     )
 }
 
+/// The error of a slack set whose exact set-up failed with `e`: a
+/// mechanism of the structure without those cables (a subdomain's
+/// "indefinite" is then round-off on it), unless the structure has
+/// compressed elements with geometric stiffness, which can make a
+/// subdomain indefinite on its own where the whole structure is stable:
+/// then the subdomain's error, with the set it was met on.
+fn set_failure(model: &Model, slack: &[bool], e: Error) -> Error {
+    match e {
+        Error::IndefiniteSubdomain { subdomain, message } if model.elements.iter().any(|el| el.geo < 0.0) => {
+            Error::IndefiniteSubdomain {
+                subdomain,
+                message: format!(
+                    "{message}, in the structure without its {} slack cables: compressed elements with \
+                     geometric stiffness can make a subdomain indefinite where the whole structure is not \
+                     (`direct`, or fewer subdomains, may solve it)",
+                    slack.iter().filter(|&&s| s).count()
+                ),
+            }
+        }
+        e => Error::Mechanism(format!("{} ({e})", mechanism_message(model, slack))),
+    }
+}
+
 /// The structure without its slack cables and its decomposition: the
 /// partition restricted to the remaining elements, weak nodes repaired.
 /// A node left without any element, or a subdomain left empty, is reported
@@ -717,8 +740,9 @@ impl NonsmoothCg {
                 (INNER_TOL_FACTOR * violation).clamp(tol, INNER_TOL_MAX.max(tol))
             };
             last_at_tol = !(inner_tol > tol);
-            // A set that leaves a mechanism is taken softened (a guide step).
-            let mut mechanism: Option<String> = None;
+            // A set that leaves a mechanism is taken softened (a guide
+            // step); the error it stands for, if the set turns out final.
+            let mut failure: Option<Error> = None;
             let t_setup = std::time::Instant::now();
             let soft = match self.ensure_solver(model, &slack, false) {
                 Ok(new) => {
@@ -734,11 +758,11 @@ impl NonsmoothCg {
                     if std::env::var_os("NSDD_NS_DEBUG").is_some() {
                         eprintln!("outer {outer}: the exact set-up failed ({e}); taking the softened step");
                     }
-                    mechanism = Some(format!("{} ({e})", mechanism_message(model, &slack)));
+                    failure = Some(set_failure(model, &slack, e));
                     match self.ensure_solver(model, &slack, true) {
                         Ok(new) => setups += new as usize,
                         Err(Error::Mechanism(_) | Error::IndefiniteSubdomain { .. }) => {
-                            return Err(Error::Mechanism(mechanism.unwrap_or_default()))
+                            return Err(failure.take().expect("set above"))
                         }
                         Err(e) => return Err(e),
                     }
@@ -896,7 +920,7 @@ impl NonsmoothCg {
                     continue;
                 }
                 if soft {
-                    return Err(Error::Mechanism(mechanism.unwrap_or_default()));
+                    return Err(failure.take().expect("a softened step follows a failed set-up"));
                 }
                 let mut elongations = self.local_elongations(model, &u);
                 let mut u = u;
