@@ -1546,7 +1546,7 @@ impl DdSolver {
                 .enumerate()
                 .map(|(e, &x)| tension(e, x))
                 .collect();
-            let Some((unbalanced, r)) = model.unbalanced_forces(f_ext, &tensions) else {
+            let Some((unbalanced, r)) = model.unbalanced_forces(f_ext, &tensions, solve.u) else {
                 break;
             };
             if converged && r <= REFINE_ABOVE * tolerance {

@@ -383,28 +383,52 @@ impl Model {
     }
 
     /// How far tensions miss equilibrium with the external forces `f_ext`:
-    /// `‖f_ext − Σ_e H_e t_e‖ / ‖t‖` over the free dofs. Exact tensions
-    /// give round-off (the direct solver 7e-14 to 5e-11 on the benchmark
-    /// scenes, 1.6e-9 at a stiffness contrast of 1e6). `None` where equilibrium is not a matter of tensions alone
-    /// (transverse geometric stiffness) or nothing is loaded.
-    pub fn equilibrium_residual(&self, f_ext: &[f64], tensions: &[f64]) -> Option<f64> {
-        self.unbalanced_forces(f_ext, tensions).map(|(_, r)| r)
+    /// `‖f_ext − Σ_e H_e t_e − K_G u‖ / ‖t‖` over the free dofs, with `K_G`
+    /// the geometric stiffness (zero unless simulated) at the displacements
+    /// `u`. Exact tensions give round-off (the direct solver 7e-14 to 5e-11
+    /// on the benchmark scenes, 1.6e-9 at a stiffness contrast of 1e6).
+    /// `None` where nothing is loaded.
+    pub fn equilibrium_residual(&self, f_ext: &[f64], tensions: &[f64], u: &[f64]) -> Option<f64> {
+        self.unbalanced_forces(f_ext, tensions, u).map(|(_, r)| r)
     }
 
-    /// The nodal forces `f_ext − Σ_e H_e t_e` the tensions leave
-    /// unbalanced (free dofs), with their relative size as in
-    /// [`Self::equilibrium_residual`].
-    pub fn unbalanced_forces(&self, f_ext: &[f64], tensions: &[f64]) -> Option<(Vec<f64>, f64)> {
-        if self.elements.iter().any(|el| el.geo != 0.0) {
-            return None;
-        }
+    /// The nodal forces `f_ext − Σ_e H_e t_e − K_G u` the tensions (and the
+    /// geometric stiffness at `u`) leave unbalanced (free dofs), with their
+    /// relative size as in [`Self::equilibrium_residual`].
+    pub fn unbalanced_forces(&self, f_ext: &[f64], tensions: &[f64], u: &[f64]) -> Option<(Vec<f64>, f64)> {
         let mut r = f_ext.to_vec();
         for (e, &t) in tensions.iter().enumerate() {
             self.add_h(e, -t, &mut r);
         }
+        self.add_geometric_forces(u, -1.0, &mut r);
         let t_norm = tensions.iter().map(|t| t * t).sum::<f64>().sqrt();
         let r_norm = r.iter().map(|v| v * v).sum::<f64>().sqrt();
         (t_norm > 0.0 && r_norm.is_finite()).then(|| (r, r_norm / t_norm))
+    }
+
+    /// `out += coef K_G u`: each element's transverse geometric stiffness
+    /// `g = t0 / L` (slack cables included: it comes from the prestress),
+    /// the force `g (I − n nᵀ)(u_b − u_a)` on node `b` and its opposite
+    /// on `a`. Nothing where the effect is off.
+    pub fn add_geometric_forces(&self, u: &[f64], coef: f64, out: &mut [f64]) {
+        for (e, el) in self.elements.iter().enumerate() {
+            if el.geo == 0.0 {
+                continue;
+            }
+            let dofs = self.element_dofs(e);
+            let at = |i: usize| if dofs[i] == FIXED { 0.0 } else { u[dofs[i]] };
+            let d: [f64; 3] = std::array::from_fn(|c| at(3 + c) - at(c));
+            let dn: f64 = (0..3).map(|c| d[c] * el.dir[c]).sum();
+            for c in 0..3 {
+                let p = coef * el.geo * (d[c] - dn * el.dir[c]);
+                if dofs[3 + c] != FIXED {
+                    out[dofs[3 + c]] += p;
+                }
+                if dofs[c] != FIXED {
+                    out[dofs[c]] -= p;
+                }
+            }
+        }
     }
 
     /// Tensions from displacements and cable slacks (λ indexed like `cables`):

@@ -110,8 +110,9 @@ pub struct SolveResult {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub factors: Option<FactorSizes>,
     /// How far the top-level tensions miss equilibrium with its loads,
-    /// `‖f − Σ_e H_e t_e‖ / ‖t‖` at the free dofs (nsdd addition; absent
-    /// with transverse geometric stiffness or without load). A DD solve is
+    /// `‖f − Σ_e H_e t_e − K_G u‖ / ‖t‖` at the free dofs (`K_G u`: the
+    /// forces of the geometric stiffness, where simulated; nsdd addition;
+    /// absent without load). A DD solve is
     /// `converged` only with this at or below its tolerance.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub equilibrium_residual: Option<f64>,

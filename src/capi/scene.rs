@@ -801,8 +801,9 @@ pub unsafe extern "C" fn nsdd_result_converged(result: *const NsddResult, out: *
 }
 
 /// How far the top-level tensions miss equilibrium with the loads,
-/// `‖f − Σ_e H_e t_e‖ / ‖t‖` at the free dofs, into `*out`; NaN where it
-/// is not measured (transverse geometric stiffness, no load). An
+/// `‖f − Σ_e H_e t_e − K_G u‖ / ‖t‖` at the free dofs (`K_G u`: the forces
+/// of the geometric stiffness, where simulated), into `*out`; NaN where it
+/// is not measured (no load). An
 /// iterative solve is converged only with this at or below its tolerance.
 ///
 /// # Safety
