@@ -15,28 +15,18 @@ pub fn rel_err(a: &[f64], b: &[f64]) -> f64 {
     }
 }
 
-/// Adds `K_G u` to `out` (free dofs), computed by hand from each element's
-/// transverse geometric stiffness `g = t0 / L`, slack cables included (it
-/// comes from the prestress and does not change as cables go slack): the
-/// force `g (I − n nᵀ)(u_b − u_a)` on node `b`, its opposite on `a`.
+/// Adds `K_G u` to `out` (free dofs): the geometric stiffness of every
+/// element (slack cables included: it comes from the prestress and does
+/// not change as cables go slack), assembled from the element blocks with
+/// no axial part and multiplied out, a path independent of the solvers'
+/// and of `Model::unbalanced_forces`.
 pub fn add_geometric_forces(model: &nsdd::model::Model, u: &[f64], out: &mut [f64]) {
-    use nsdd::model::FIXED;
-    for (e, el) in model.elements.iter().enumerate() {
-        if el.geo == 0.0 {
-            continue;
-        }
-        let dofs = model.element_dofs(e);
-        let at = |i: usize| if dofs[i] == FIXED { 0.0 } else { u[dofs[i]] };
-        let d: [f64; 3] = std::array::from_fn(|c| at(3 + c) - at(c));
-        let dn: f64 = (0..3).map(|c| d[c] * el.dir[c]).sum();
-        for c in 0..3 {
-            let p = el.geo * (d[c] - dn * el.dir[c]);
-            if dofs[3 + c] != FIXED {
-                out[dofs[3 + c]] += p;
-            }
-            if dofs[c] != FIXED {
-                out[dofs[c]] -= p;
-            }
+    let all: Vec<usize> = (0..model.elements.len()).collect();
+    // Lower triangle (row >= column), duplicates summed by the products.
+    for (r, c, v) in model.stiffness_triplets_with_axial(&all, Some, 0.0) {
+        out[r] += v * u[c];
+        if r != c {
+            out[c] += v * u[r];
         }
     }
 }
