@@ -1373,3 +1373,51 @@ fn subdomain_kernels_do_not_depend_on_stiffness_contrast() {
         assert_eq!(dims(ea_cable), reference, "contrast {:.0e}", 1e4 / ea_cable);
     }
 }
+
+/// A random truss of the property test (`tests/proptest_dd.rs`, one case in
+/// about a hundred): two subdomains, one interface of 9 dofs, and after the
+/// coarse step a residual at round-off that the deluxe-weighted
+/// preconditioner maps to exactly zero. CG then had `rz = 0`, and the next
+/// `β = rz_new / rz` was 0/0: reported "diverged: the iterate is no longer
+/// finite". It is converged, like direct.
+#[test]
+fn cg_stops_cleanly_when_the_preconditioned_residual_vanishes() {
+    const SCENE: &str = r#"[scene]
+name = "random-truss"
+
+[effects]
+unilateral_cables = false
+prestress = true
+geometric_stiffness = false
+self_weight = false
+
+[nodes]
+x = [-2.0, 2.0, 0.0, 0.5896131325040812, 0.18421453995559048, -0.5400793385310666, 0.001136606715858569]
+y = [-2.0, -2.0, 2.0, 0.3192458404341767, 0.8613146248021678, 0.8265856746243166, -0.5516764199130298]
+z = [-2.0, -2.0, -2.0, -0.7739364098743496, -0.536343410898097, -0.006839284958555618, 0.27035346304939645]
+
+[elements]
+a = [0, 1, 2, 1, 2, 3, 1, 2, 3, 2, 3, 5, 3, 3, 5, 0]
+b = [3, 3, 3, 4, 4, 4, 5, 5, 5, 6, 6, 6, 2, 2, 0, 3]
+kind = ["bar", "bar", "bar", "bar", "bar", "bar", "bar", "bar", "bar", "bar", "bar", "bar", "cable", "cable", "cable", "bar"]
+ea = [312.0288976632578, 441.0973429675756, 559.2013847902166, 979.3319324503575, 944.9864180719136, 530.3739466507534, 794.1504376303143, 279.5099180688879, 682.796143578362, 36.041425162435424, 977.5992884927934, 40.11501508934773, 298.82406443617276, 275.4468650905629, 654.6005054988647, 859.8289024658375]
+t0 = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.41066939605089103, -0.199372281047934, 0.3428048913479598, 0.0]
+subdomain = [0, 0, 0, 1, 1, 1, 0, 1, 0, 1, 0, 1, 1, 0, 0, 1]
+
+[supports]
+node = [0, 1, 2]
+dofs = ["xyz", "xyz", "xyz"]
+
+[loads]
+node = [3, 4, 5, 6]
+fx = [-0.6010438691157483, -0.45888064081798663, 0.4507730069323179, 0.7623531773356412]
+fy = [-0.7930969773929554, 0.22786952749125058, -0.6693240338384591, 0.21397970503136482]
+fz = [0.04277394651130627, 0.7681847261921938, 0.8825852328626768, -0.5855433489552333]
+"#;
+    let scene = Scene::from_toml_str(SCENE).unwrap();
+    let r = solve(&scene, &opts(Method::Cg, 0, 1e-8)).expect("cg solve");
+    assert!(r.converged, "{:?}: {:?}", r.status, r.stop_message);
+    let d = solve(&scene, &opts(Method::Direct, 1, 1e-8)).unwrap();
+    let eu = rel_err(&flat(&r.displacements), &flat(&d.displacements));
+    assert!(eu < 1e-10, "{eu:e}");
+}

@@ -163,6 +163,25 @@ impl DdSolver {
         // How the loop ended when not by the stopping test or the limit.
         let mut ended: Option<(Status, String)> = None;
         while !converged && iterations < self.opts.max_iterations {
+            if rz == 0.0 {
+                // The preconditioned residual vanished exactly (`z = 0`,
+                // e.g. a residual at round-off that the coarse projection
+                // removes whole): there is no direction left, and the next
+                // `β = rz_new / rz` would be 0/0. The true indicator decides.
+                let indicator = self.cg_true_indicator(ws, b_norm);
+                history.push(cg_entry(iterations, t0, indicator));
+                converged = indicator <= self.opts.tolerance;
+                if !converged {
+                    ended = Some((
+                        Status::Breakdown,
+                        format!(
+                            "the preconditioned residual is exactly zero with the indicator at {indicator:.1e}: \
+                             the residual lies where the preconditioner sees nothing"
+                        ),
+                    ));
+                }
+                break;
+            }
             iterations += 1;
             // q = A p = −J V_hom(p): the homogeneous global step with F = p
             // (V_hom(p) is left in the subdomains' `v`, `jump` = J V_hom(p)).
