@@ -383,3 +383,63 @@ fn cg_matches_direct_on_random_trusses() {
         errs.last().unwrap()
     );
 }
+
+/// The same random trusses with geometric stiffness on and unilateral
+/// cables (their prestress `t0` of either sign): the direct solver's Schur
+/// path and its refactoring path (`set_schur_limit(0)`) give the same
+/// displacements, because a slack cable keeps its geometric stiffness on
+/// both (it comes from the prestress and does not change with the slack
+/// set). Trusses the geometric stiffness makes indefinite, or whose slack
+/// set is a mechanism, are skipped.
+#[test]
+fn direct_paths_agree_with_geometric_stiffness() {
+    use nsdd::direct::DirectSolver;
+    let cases = std::env::var("PROPTEST_CASES")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(64);
+    let config = Config {
+        cases,
+        failure_persistence: None,
+        max_shrink_iters: 0,
+        ..Config::default()
+    };
+    let mut runner = TestRunner::new_with_rng(config, TestRng::deterministic_rng(RngAlgorithm::ChaCha));
+    // (compared, of which with slack cables, skipped)
+    let tally = RefCell::new((0usize, 0usize, 0usize));
+    let result = runner.run(&truss_strategy(), |truss| {
+        let mut scene = truss.scene();
+        if !scene.effects.prestress {
+            return Ok(());
+        }
+        scene.effects.geometric_stiffness = true;
+        scene.effects.unilateral_cables = true;
+        let model = Model::from_scene(&scene).map_err(|e| TestCaseError::fail(e.to_string()))?;
+        let b = model.rhs(&model.load_cases[0]);
+        let solved = |limit: usize| -> Option<Vec<f64>> {
+            let mut d = DirectSolver::new(&model).ok()?;
+            d.set_schur_limit(limit);
+            d.solve(&model, &b).ok().map(|eq| eq.u)
+        };
+        let mut t = tally.borrow_mut();
+        let (Some(schur), Some(refactored)) = (solved(usize::MAX), solved(0)) else {
+            t.2 += 1;
+            return Ok(());
+        };
+        let err = rel_err(&refactored, &schur);
+        prop_assert!(err <= 1e-9, "the two paths differ by {err:.1e}");
+        t.0 += 1;
+        let r = solve(&scene, &opts(Method::Direct, 1, TOL)).map_err(|e| TestCaseError::fail(e.to_string()))?;
+        t.1 += usize::from(r.slack.iter().any(|&s| s));
+        Ok(())
+    });
+    let (compared, with_slack, skipped) = tally.into_inner();
+    eprintln!("random trusses with geometric stiffness: {compared} compared ({with_slack} with slack cables), {skipped} skipped");
+    if let Err(e) = result {
+        panic!("{e}");
+    }
+    assert!(
+        with_slack * 4 >= compared && compared > 0,
+        "too few cases with slack cables"
+    );
+}
