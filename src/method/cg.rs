@@ -168,18 +168,12 @@ impl DdSolver {
                 // e.g. a residual at round-off that the coarse projection
                 // removes whole): there is no direction left, and the next
                 // `β = rz_new / rz` would be 0/0. The true indicator decides.
-                let indicator = self.cg_true_indicator(ws, b_norm);
-                history.push(cg_entry(iterations, t0, indicator));
-                converged = indicator <= self.opts.tolerance;
-                if !converged {
-                    ended = Some((
-                        Status::Breakdown,
-                        format!(
-                            "the preconditioned residual is exactly zero with the indicator at {indicator:.1e}: \
-                             the residual lies where the preconditioner sees nothing"
-                        ),
-                    ));
-                }
+                (converged, ended) = self.cg_without_direction(ws, b_norm, &mut history, t0, iterations, |ind| {
+                    format!(
+                        "the preconditioned residual is exactly zero with the indicator at {ind:.1e}: the \
+                         residual lies where the preconditioner sees nothing"
+                    )
+                });
                 break;
             }
             iterations += 1;
@@ -199,15 +193,9 @@ impl DdSolver {
                     ended = Some((Status::Diverged, "the iterate is no longer finite (NaN or Inf)".into()));
                     break;
                 }
-                let indicator = self.cg_true_indicator(ws, b_norm);
-                history.push(cg_entry(iterations, t0, indicator));
-                converged = indicator <= self.opts.tolerance;
-                if !converged {
-                    ended = Some((
-                        Status::Breakdown,
-                        format!("pᵀAp = {pq:.3e} <= 0: the search direction lies in the operator's null space"),
-                    ));
-                }
+                (converged, ended) = self.cg_without_direction(ws, b_norm, &mut history, t0, iterations, |_| {
+                    format!("pᵀAp = {pq:.3e} <= 0: the search direction lies in the operator's null space")
+                });
                 break;
             }
             let a = rz / pq;
@@ -445,6 +433,27 @@ impl DdSolver {
     }
 
     /// The indicator of the CG iterate measured on its true jump.
+    /// The end of a CG run with no search direction left (`rz = 0`, or
+    /// `pᵀAp ≤ 0`): the indicator re-measured on the iterate decides
+    /// `converged`; otherwise a breakdown, `why(indicator)`.
+    fn cg_without_direction(
+        &mut self,
+        ws: &mut CgWorkspace,
+        b_norm: f64,
+        history: &mut Vec<HistoryEntry>,
+        t0: Instant,
+        iterations: usize,
+        why: impl FnOnce(f64) -> String,
+    ) -> (bool, Option<(Status, String)>) {
+        let indicator = self.cg_true_indicator(ws, b_norm);
+        history.push(cg_entry(iterations, t0, indicator));
+        if indicator <= self.opts.tolerance {
+            (true, None)
+        } else {
+            (false, Some((Status::Breakdown, why(indicator))))
+        }
+    }
+
     fn cg_true_indicator(&mut self, ws: &mut CgWorkspace, b_norm: f64) -> f64 {
         let (jump, monitor) = self.cg_jump(ws, b_norm);
         if self.lumped_force() {
