@@ -191,6 +191,20 @@ fn kkt_conditions_on_generated_scenes() {
     }
 }
 
+/// The direct solutions of `model`'s load case 0 by the Schur path and by
+/// the refactoring path (`set_schur_limit(0)`), with the number of
+/// refactorizations the latter made.
+fn by_both_paths(model: &Model) -> (nsdd::direct::Equilibrium, nsdd::direct::Equilibrium, usize) {
+    let b = model.rhs(&model.load_cases[0]);
+    let mut schur = DirectSolver::new(model).unwrap();
+    schur.set_schur_limit(usize::MAX);
+    let mut refactor = DirectSolver::new(model).unwrap();
+    refactor.set_schur_limit(0);
+    let a = schur.solve(model, &b).unwrap();
+    let c = refactor.solve(model, &b).unwrap();
+    (a, c, refactor.refactorizations())
+}
+
 #[test]
 fn large_slack_sets_refactor_and_agree_with_the_schur_path() {
     let scene = grid(&GridParams {
@@ -200,13 +214,7 @@ fn large_slack_sets_refactor_and_agree_with_the_schur_path() {
         ..Default::default()
     });
     let model = Model::from_scene(&scene).unwrap();
-    let b = model.rhs(&model.load_cases[0]);
-    let mut schur = DirectSolver::new(&model).unwrap();
-    schur.set_schur_limit(usize::MAX);
-    let mut refactor = DirectSolver::new(&model).unwrap();
-    refactor.set_schur_limit(0);
-    let a = schur.solve(&model, &b).unwrap();
-    let c = refactor.solve(&model, &b).unwrap();
+    let (a, c, _) = by_both_paths(&model);
     assert!(rel_err(&a.u, &c.u) < 1e-12);
     let sa: Vec<bool> = a.lambda.iter().map(|&l| l > 0.0).collect();
     let sc: Vec<bool> = c.lambda.iter().map(|&l| l > 0.0).collect();
@@ -229,14 +237,8 @@ fn slack_cables_keep_their_geometric_stiffness_on_both_paths() {
     });
     assert!(scene.effects.geometric_stiffness);
     let model = Model::from_scene(&scene).unwrap();
-    let b = model.rhs(&model.load_cases[0]);
-    let mut schur = DirectSolver::new(&model).unwrap();
-    schur.set_schur_limit(usize::MAX);
-    let mut refactor = DirectSolver::new(&model).unwrap();
-    refactor.set_schur_limit(0);
-    let a = schur.solve(&model, &b).unwrap();
-    let c = refactor.solve(&model, &b).unwrap();
-    assert!(refactor.refactorizations() > 0);
+    let (a, c, refactorizations) = by_both_paths(&model);
+    assert!(refactorizations > 0);
     let sa: Vec<bool> = a.lambda.iter().map(|&l| l > 0.0).collect();
     let sc: Vec<bool> = c.lambda.iter().map(|&l| l > 0.0).collect();
     assert_eq!(sa, sc);
@@ -293,13 +295,28 @@ fn unsupported_structure_is_a_named_mechanism() {
 /// 5e-10, the 410² plate's by 3.5e-8), a forward error that the
 /// equilibrium residual (2e-13) does not show. After it they agree to
 /// round-off of the displacements, with and without slack cables.
+/// The direct solutions of `scene` with AMD and with nested dissection.
+fn with_both_orderings(scene: &Scene) -> (nsdd::result::SolveResult, nsdd::result::SolveResult) {
+    use nsdd::scene::OrderingChoice;
+    let solve_with = |ordering| {
+        let o = nsdd::solve::SolveOptions {
+            ordering,
+            ..opts(Method::Direct, 1, 1e-10)
+        };
+        solve(scene, &o).expect("direct")
+    };
+    (
+        solve_with(OrderingChoice::Amd),
+        solve_with(OrderingChoice::NestedDissection),
+    )
+}
+
 /// With geometric stiffness too: the refinement's residual takes `K_G u`
 /// (from `u`; it is not a function of the elongations). On a tensegrity
 /// grid with struts 1e5 × stiffer than its cables the two orderings gave
 /// answers 3.6e-8 apart unrefined (20×20; 1e-14 refined).
 #[test]
 fn refinement_with_geometric_stiffness_makes_the_orderings_agree() {
-    use nsdd::scene::OrderingChoice;
     let scene = tensegrity(&TensegrityParams {
         nx: 10,
         ny: 10,
@@ -308,17 +325,7 @@ fn refinement_with_geometric_stiffness_makes_the_orderings_agree() {
         ..Default::default()
     });
     assert!(scene.effects.geometric_stiffness);
-    let solve_with = |ordering| {
-        let o = nsdd::solve::SolveOptions {
-            ordering,
-            ..opts(Method::Direct, 1, 1e-10)
-        };
-        solve(&scene, &o).expect("direct")
-    };
-    let (amd, nd) = (
-        solve_with(OrderingChoice::Amd),
-        solve_with(OrderingChoice::NestedDissection),
-    );
+    let (amd, nd) = with_both_orderings(&scene);
     assert!(amd.slack.iter().any(|&s| s));
     assert_eq!(amd.slack, nd.slack);
     let eu = rel_err(&flat(&amd.displacements), &flat(&nd.displacements));
@@ -331,7 +338,6 @@ fn refinement_with_geometric_stiffness_makes_the_orderings_agree() {
 
 #[test]
 fn refinement_makes_the_orderings_agree_to_round_off() {
-    use nsdd::scene::OrderingChoice;
     for unilateral in [false, true] {
         let scene = grid(&GridParams {
             nx: 65,
@@ -339,17 +345,7 @@ fn refinement_makes_the_orderings_agree_to_round_off() {
             unilateral,
             ..Default::default()
         });
-        let solve_with = |ordering| {
-            let o = nsdd::solve::SolveOptions {
-                ordering,
-                ..opts(Method::Direct, 1, 1e-10)
-            };
-            solve(&scene, &o).expect("direct")
-        };
-        let (amd, nd) = (
-            solve_with(OrderingChoice::Amd),
-            solve_with(OrderingChoice::NestedDissection),
-        );
+        let (amd, nd) = with_both_orderings(&scene);
         if unilateral {
             assert!(amd.slack.iter().any(|&s| s), "the loaded grid has slack cables");
             assert_eq!(amd.slack, nd.slack);

@@ -76,6 +76,18 @@ fn truss_strategy() -> impl Strategy<Value = Truss> {
 }
 
 impl Truss {
+    /// The truss with geometric stiffness on and unilateral cables, if it
+    /// has a prestress (else `K_G` is zero).
+    fn geometric_scene(&self) -> Option<Scene> {
+        let mut scene = self.scene();
+        if !scene.effects.prestress {
+            return None;
+        }
+        scene.effects.geometric_stiffness = true;
+        scene.effects.unilateral_cables = true;
+        Some(scene)
+    }
+
     fn scene(&self) -> Scene {
         let mut b = SceneBuilder::new("random-truss");
         // Three supported, non-collinear base nodes.
@@ -259,8 +271,10 @@ fn check(truss: &Truss, tally: &RefCell<Tally>, method: Method) -> Result<(), Te
     }
 }
 
-#[test]
-fn multilevel_matches_direct_on_random_trusses() {
+/// A deterministic runner of `PROPTEST_CASES` cases (64 by default), no
+/// shrinking and no persisted failures: every property here tallies its
+/// cases and reports them.
+fn runner() -> TestRunner {
     let cases = std::env::var("PROPTEST_CASES")
         .ok()
         .and_then(|v| v.parse().ok())
@@ -271,7 +285,12 @@ fn multilevel_matches_direct_on_random_trusses() {
         max_shrink_iters: 0,
         ..Config::default()
     };
-    let mut runner = TestRunner::new_with_rng(config, TestRng::deterministic_rng(RngAlgorithm::ChaCha));
+    TestRunner::new_with_rng(config, TestRng::deterministic_rng(RngAlgorithm::ChaCha))
+}
+
+#[test]
+fn multilevel_matches_direct_on_random_trusses() {
+    let mut runner = runner();
     let tally = RefCell::new(Tally::default());
     let result = runner.run(&truss_strategy(), |truss| check(&truss, &tally, Method::Multilevel));
     let t = tally.into_inner();
@@ -331,17 +350,7 @@ fn multilevel_matches_direct_on_random_trusses() {
 /// direct solver solves must converge and match it.
 #[test]
 fn cg_matches_direct_on_random_trusses() {
-    let cases = std::env::var("PROPTEST_CASES")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(64);
-    let config = Config {
-        cases,
-        failure_persistence: None,
-        max_shrink_iters: 0,
-        ..Config::default()
-    };
-    let mut runner = TestRunner::new_with_rng(config, TestRng::deterministic_rng(RngAlgorithm::ChaCha));
+    let mut runner = runner();
     let tally = RefCell::new(Tally::default());
     let result = runner.run(&truss_strategy(), |truss| check(&truss, &tally, Method::Cg));
     let t = tally.into_inner();
@@ -394,26 +403,13 @@ fn cg_matches_direct_on_random_trusses() {
 #[test]
 fn direct_paths_agree_with_geometric_stiffness() {
     use nsdd::direct::DirectSolver;
-    let cases = std::env::var("PROPTEST_CASES")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(64);
-    let config = Config {
-        cases,
-        failure_persistence: None,
-        max_shrink_iters: 0,
-        ..Config::default()
-    };
-    let mut runner = TestRunner::new_with_rng(config, TestRng::deterministic_rng(RngAlgorithm::ChaCha));
+    let mut runner = runner();
     // (compared, of which with slack cables, skipped)
     let tally = RefCell::new((0usize, 0usize, 0usize));
     let result = runner.run(&truss_strategy(), |truss| {
-        let mut scene = truss.scene();
-        if !scene.effects.prestress {
+        let Some(scene) = truss.geometric_scene() else {
             return Ok(());
-        }
-        scene.effects.geometric_stiffness = true;
-        scene.effects.unilateral_cables = true;
+        };
         let model = Model::from_scene(&scene).map_err(|e| TestCaseError::fail(e.to_string()))?;
         let b = model.rhs(&model.load_cases[0]);
         let solved = |limit: usize| -> Option<Vec<f64>> {
@@ -450,26 +446,13 @@ fn direct_paths_agree_with_geometric_stiffness() {
 /// (compressed elements can make one indefinite on its own), counted.
 #[test]
 fn cg_with_geometric_stiffness_matches_direct_or_names_the_subdomain() {
-    let cases = std::env::var("PROPTEST_CASES")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(64);
-    let config = Config {
-        cases,
-        failure_persistence: None,
-        max_shrink_iters: 0,
-        ..Config::default()
-    };
-    let mut runner = TestRunner::new_with_rng(config, TestRng::deterministic_rng(RngAlgorithm::ChaCha));
+    let mut runner = runner();
     // (matched, indefinite subdomain, other errors, not converged)
     let tally = RefCell::new((0usize, 0usize, Vec::<String>::new(), 0usize));
     let result = runner.run(&truss_strategy(), |truss| {
-        let mut scene = truss.scene();
-        if !scene.effects.prestress {
+        let Some(scene) = truss.geometric_scene() else {
             return Ok(());
-        }
-        scene.effects.geometric_stiffness = true;
-        scene.effects.unilateral_cables = true;
+        };
         let Ok(direct) = solve(&scene, &opts(Method::Direct, 1, TOL)) else {
             return Ok(());
         };
