@@ -432,7 +432,6 @@ impl DdSolver {
         (self.op.norm2(&ws.zt) + fm * fm).sqrt() / self.force_scale(b_norm)
     }
 
-    /// The indicator of the CG iterate measured on its true jump.
     /// The end of a CG run with no search direction left (`rz = 0`, or
     /// `pᵀAp ≤ 0`): the indicator re-measured on the iterate decides
     /// `converged`; otherwise a breakdown, `why(indicator)`.
@@ -454,6 +453,7 @@ impl DdSolver {
         }
     }
 
+    /// The indicator of the CG iterate measured on its true jump.
     fn cg_true_indicator(&mut self, ws: &mut CgWorkspace, b_norm: f64) -> f64 {
         let (jump, monitor) = self.cg_jump(ws, b_norm);
         if self.lumped_force() {
