@@ -287,6 +287,33 @@ fn a_loose_solve_that_stalls_is_not_accepted_as_the_answer() {
     }
 }
 
+/// Where cg's outer steps meet a subdomain that the slack set leaves
+/// indefinite, `multilevel` (whose subdomains keep their whole stiffness as
+/// cables go slack) still solves the grid wherever the taut subdomains are
+/// semi-definite: the README's statement of the limit.
+#[test]
+fn multilevel_solves_the_tensegrity_grid_where_cg_meets_an_indefinite_subdomain() {
+    let scene = tensegrity(&TensegrityParams {
+        nx: 10,
+        ny: 10,
+        load: 1.0,
+        ..Default::default()
+    });
+    let tol = 1e-8;
+    let direct = solve(&scene, &opts(Method::Direct, 1, tol)).unwrap();
+    assert!(direct.slack.iter().any(|&s| s));
+    for n in [2, 4] {
+        match solve(&scene, &opts(Method::Cg, n, tol)) {
+            Err(Error::IndefiniteSubdomain { message, .. }) => assert!(message.contains("slack cables"), "{message}"),
+            other => panic!("cg on {n}: {:?}", other.map(|r| r.status)),
+        }
+        let r = solve(&scene, &opts(Method::Multilevel, n, tol)).unwrap();
+        assert!(r.converged, "multilevel on {n}: {:?}", r.status);
+        let eu = rel_err(&flat(&r.displacements), &flat(&direct.displacements));
+        assert!(eu <= 10.0 * tol, "multilevel on {n}: {eu:.1e}");
+    }
+}
+
 #[test]
 fn towers_match_direct() {
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/tower-2x2x6.toml");
