@@ -410,7 +410,8 @@ fn set_failure(model: &Model, slack: &[bool], e: Error) -> Error {
                 message: format!(
                     "{message}, in the structure without its {} slack cables: compressed elements with \
                      geometric stiffness can make a subdomain indefinite where the whole structure is not \
-                     (`direct`, or fewer subdomains, may solve it)",
+                     (`multilevel`, whose subdomains keep their slack cables' stiffness, `direct`, or fewer \
+                     subdomains may solve it)",
                     slack.iter().filter(|&&s| s).count()
                 ),
             }

@@ -304,7 +304,12 @@ fn multilevel_solves_the_tensegrity_grid_where_cg_meets_an_indefinite_subdomain(
     assert!(direct.slack.iter().any(|&s| s));
     for n in [2, 4] {
         match solve(&scene, &opts(Method::Cg, n, tol)) {
-            Err(Error::IndefiniteSubdomain { message, .. }) => assert!(message.contains("slack cables"), "{message}"),
+            Err(Error::IndefiniteSubdomain { message, .. }) => {
+                assert!(
+                    message.contains("slack cables") && message.contains("`multilevel`"),
+                    "{message}"
+                )
+            }
             other => panic!("cg on {n}: {:?}", other.map(|r| r.status)),
         }
         let r = solve(&scene, &opts(Method::Multilevel, n, tol)).unwrap();
