@@ -434,27 +434,17 @@ fn reduced_problem(
     for (c, &e) in model.cables.iter().enumerate() {
         is_slack[e] = slack[c];
     }
-    // A slack cable with geometric stiffness stays, with that stiffness
-    // alone: `K_G` is part of the `K` that never changes (docs/design.md
-    // §1), as on the direct solver's paths.
+    // The exact step's structure (slack cables at zero axial stiffness),
+    // without the slack cables that then contribute nothing. One with
+    // geometric stiffness stays, with that stiffness alone: `K_G` is part
+    // of the `K` that never changes (docs/design.md §1), as on the direct
+    // solver's paths.
     let keep: Vec<usize> = (0..model.elements.len())
         .filter(|&e| !is_slack[e] || model.elements[e].geo != 0.0)
         .collect();
-    let mut m = model.clone();
-    m.elements = keep
-        .iter()
-        .map(|&e| {
-            let mut el = model.elements[e].clone();
-            el.unilateral = false;
-            if is_slack[e] {
-                // No axial stiffness, hence no tension and no prestrain load.
-                el.k = 0.0;
-            }
-            el
-        })
-        .collect();
-    m.cables.clear();
-    m.effects.unilateral_cables = false;
+    let mut m = linear_model(model, slack, 0.0);
+    let elements = keep.iter().map(|&e| m.elements[e].clone()).collect();
+    m.elements = elements;
     let mut used = vec![false; model.coords.len()];
     for el in &m.elements {
         used[el.a] = true;
