@@ -27,6 +27,7 @@ use crate::factor::OrderingKind;
 use crate::kernels::{self, Run};
 use crate::method::cg::CgWorkspace;
 pub use crate::method::stopping::{stalled, stopping_factor, CONTRACTION_CAP, CONTRACTION_WINDOW};
+use crate::method::{on_workers, Progress};
 use crate::model::{Model, FIXED};
 use crate::operator::InterfaceOperator;
 use crate::outcome::{Outcome, Refinement, Status};
@@ -1440,12 +1441,7 @@ impl DdSolver {
     /// on a dof shared by `m` subdomains is split equally between them. With
     /// `warm`, starts from the interface forces and slacks of the previous
     /// solve (load paths).
-    pub fn solve(
-        &mut self,
-        f_ext: &[f64],
-        warm: bool,
-        progress: Option<&mut dyn FnMut(usize, f64)>,
-    ) -> Result<DdOutcome> {
+    pub fn solve(&mut self, f_ext: &[f64], warm: bool, progress: Progress<'_>) -> Result<DdOutcome> {
         if f_ext.len() != self.n_free {
             return Err(Error::input(
                 "rhs",
@@ -1475,12 +1471,7 @@ impl DdSolver {
 
     /// Solves for right-hand sides given per subdomain in local numbering
     /// (the algebraic level: each subdomain's share of the load).
-    pub fn solve_local(
-        &mut self,
-        rhs: &[&[f64]],
-        warm: bool,
-        progress: Option<&mut dyn FnMut(usize, f64)>,
-    ) -> Result<DdOutcome> {
+    pub fn solve_local(&mut self, rhs: &[&[f64]], warm: bool, progress: Progress<'_>) -> Result<DdOutcome> {
         if rhs.len() != self.op.subs.len() {
             return Err(Error::input(
                 "rhs",
@@ -1680,12 +1671,14 @@ impl DdSolver {
     }
 
     /// Runs the configured method (a module of [`crate::method`]).
-    fn iterate(&mut self, warm: bool, progress: Option<&mut dyn FnMut(usize, f64)>) -> Result<Outcome> {
-        if self.opts.krylov {
-            self.iterate_cg(warm, progress)
-        } else {
-            self.iterate_stationary(warm, progress)
-        }
+    fn iterate(&mut self, warm: bool, progress: Progress<'_>) -> Result<Outcome> {
+        on_workers(self.op.comm.in_process(), || {
+            if self.opts.krylov {
+                self.iterate_cg(warm, progress)
+            } else {
+                self.iterate_stationary(warm, progress)
+            }
+        })
     }
 
     /// Zero interface forces and cable slacks: a cold start.

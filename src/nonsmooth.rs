@@ -49,6 +49,7 @@ use crate::dd::{DdOptions, DdSolver, PooledSubdomain, Refined};
 use crate::decomposition::Decomposition;
 use crate::direct::Equilibrium;
 use crate::error::{Error, Result};
+use crate::method::{on_workers, Progress};
 use crate::model::Model;
 use crate::model::FIXED;
 use crate::outcome::{Refinement, Status};
@@ -675,12 +676,14 @@ impl NonsmoothCg {
     /// Solves for the external forces `f_ext` (free dofs) with exact cable
     /// complementarity up to the tolerance. The first set is the last
     /// settled one (load steps and load cases), else every cable taut.
-    pub fn solve(
-        &mut self,
-        model: &Model,
-        f_ext: &[f64],
-        mut progress: Option<&mut dyn FnMut(usize, f64)>,
-    ) -> Result<NonsmoothOutcome> {
+    pub fn solve(&mut self, model: &Model, f_ext: &[f64], progress: Progress<'_>) -> Result<NonsmoothOutcome> {
+        on_workers(self.pool.placement.in_process(), || {
+            self.active_set(model, f_ext, progress)
+        })
+    }
+
+    /// [`Self::solve`], on a worker thread.
+    fn active_set(&mut self, model: &Model, f_ext: &[f64], mut progress: Progress<'_>) -> Result<NonsmoothOutcome> {
         if f_ext.len() != model.n_free {
             return Err(Error::input(
                 "rhs",
@@ -783,7 +786,11 @@ impl NonsmoothCg {
             let t_inner = std::time::Instant::now();
             let out = {
                 let mut shifted = progress.as_deref_mut().map(|p| move |i: usize, v: f64| p(base + i, v));
-                dd.solve(f_ext, warm, shifted.as_mut().map(|p| p as &mut dyn FnMut(usize, f64)))?
+                dd.solve(
+                    f_ext,
+                    warm,
+                    shifted.as_mut().map(|p| p as &mut (dyn FnMut(usize, f64) + Send)),
+                )?
             };
             // A diverged inner solve ends the nonsmooth one as an error, as
             // before the DD outcome kept its history.

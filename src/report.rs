@@ -234,7 +234,7 @@ pub enum Event<'a> {
 }
 
 /// Optional observer of a study.
-pub type Observer<'a> = Option<&'a mut dyn FnMut(Event<'_>)>;
+pub type Observer<'a> = Option<&'a mut (dyn FnMut(Event<'_>) + Send)>;
 
 fn run_solve(scene: &Scene, opts: &SolveOptions, obs: &mut Observer<'_>) -> Result<SolveResult> {
     match obs.as_deref_mut() {

@@ -47,8 +47,7 @@ use std::time::Instant;
 /// settings type of the crate, [`SolverSettings`], under its historical name.
 pub type SolveOptions = SolverSettings;
 
-/// A callback told `(iteration, indicator)` after every iteration.
-pub type Progress<'a> = Option<&'a mut dyn FnMut(usize, f64)>;
+pub use crate::method::Progress;
 
 /// A set-up solver of either kind, reusable over load cases.
 pub enum Prepared {
@@ -395,6 +394,17 @@ pub fn solve_with_progress(scene: &Scene, opts: &SolveOptions, progress: Progres
 pub fn solve_in(
     scene: &Scene,
     opts: &SolveOptions,
+    progress: Progress<'_>,
+    placement: Placement,
+) -> Result<SolveResult> {
+    // The set-up's parallel loops too (see `on_workers`).
+    crate::method::on_workers(placement.in_process(), || solve_here(scene, opts, progress, placement))
+}
+
+/// [`solve_in`], on the thread that runs it.
+fn solve_here(
+    scene: &Scene,
+    opts: &SolveOptions,
     mut progress: Progress<'_>,
     placement: Placement,
 ) -> Result<SolveResult> {
@@ -421,7 +431,9 @@ pub fn solve_in(
                 &model,
                 &f,
                 k > 1,
-                progress.as_deref_mut().map(|p| p as &mut dyn FnMut(usize, f64)),
+                progress
+                    .as_deref_mut()
+                    .map(|p| p as &mut (dyn FnMut(usize, f64) + Send)),
             )?;
             steps.push(case_result(
                 &model,

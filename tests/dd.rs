@@ -12,7 +12,7 @@ use nsdd::generate::{grid, tensegrity, tower, GridParams, TensegrityParams, Towe
 use nsdd::model::Model;
 use nsdd::outcome::Status;
 use nsdd::scene::{Method, Preconditioner, SearchDirection};
-use nsdd::solve::{decompose, solve};
+use nsdd::solve::{decompose, solve, solve_with_progress};
 
 fn grid_scene(n: usize, unilateral: bool) -> nsdd::scene::Scene {
     grid(&GridParams {
@@ -202,6 +202,58 @@ fn results_do_not_depend_on_the_thread_count() {
     assert_eq!(a.tensions, b.tensions);
     assert_eq!(b.displacements, c.displacements);
     assert_eq!(a.iterations, b.iterations);
+}
+
+/// The methods run their loops on a worker of the caller's pool: one
+/// hand-over per solve instead of one per parallel loop, which cost the
+/// small solves most of their time in futex calls. The progress callback,
+/// called from the loop, sees it, for the stationary method, the linear cg
+/// and the nonsmooth cg, from outside any pool and inside a pool the
+/// caller installs, with the answers of a plain solve.
+#[test]
+fn the_methods_iterate_on_a_worker_of_the_callers_pool() {
+    let (nonsmooth, linear) = (grid_scene(8, true), grid_scene(8, false));
+    for (scene, method) in [
+        (&nonsmooth, Method::Multilevel),
+        (&linear, Method::Cg),
+        (&nonsmooth, Method::Cg),
+    ] {
+        let o = opts(method, 4, 1e-8);
+        let plain = solve(scene, &o).unwrap();
+        let run = |threads: Option<usize>| {
+            let mut seen = Vec::new();
+            let mut note = |_: usize, _: f64| seen.push((rayon::current_thread_index(), rayon::current_num_threads()));
+            let r = match threads {
+                None => solve_with_progress(scene, &o, Some(&mut note)),
+                Some(t) => {
+                    let pool = rayon::ThreadPoolBuilder::new().num_threads(t).build().unwrap();
+                    pool.install(|| solve_with_progress(scene, &o, Some(&mut note)))
+                }
+            };
+            (r.unwrap(), seen)
+        };
+        let (r, seen) = run(None);
+        assert_eq!(seen.len(), r.iterations, "{method:?}: one call per iteration");
+        let global = rayon::current_num_threads();
+        assert!(
+            seen.iter().all(|&(i, n)| i.is_some() && n == global),
+            "{method:?}: {seen:?}"
+        );
+        assert_eq!(
+            (r.displacements, r.tensions),
+            (plain.displacements.clone(), plain.tensions.clone())
+        );
+        let (r, seen) = run(Some(3));
+        assert!(
+            !seen.is_empty() && seen.iter().all(|&(i, n)| i.is_some() && n == 3),
+            "{method:?}: {seen:?}"
+        );
+        assert!(r.converged);
+        assert!(
+            rel_err(&flat(&r.displacements), &flat(&plain.displacements)) < 1e-7,
+            "{method:?}"
+        );
+    }
 }
 
 #[test]

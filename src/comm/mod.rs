@@ -82,6 +82,12 @@ impl Placement {
         }
     }
 
+    /// Whether no MPI is involved: the solve may then run on any thread
+    /// (see [`crate::method::on_workers`]).
+    pub fn in_process(&self) -> bool {
+        matches!(self, Placement::Process)
+    }
+
     /// Whether this process writes results and prints progress (rank 0).
     pub fn is_root(&self) -> bool {
         self.rank() == 0
@@ -231,6 +237,11 @@ pub enum Seam {
 }
 
 impl Seam {
+    /// Whether every subdomain is in this process (no MPI).
+    pub fn in_process(&self) -> bool {
+        matches!(self, Seam::Threads(_))
+    }
+
     /// Under MPI, every rank's traffic since the set-up as `[trace
     /// messages, trace bytes, reductions, reduction bytes]` per rank, in
     /// rank order (collective: every rank calls it); `None` in one process.

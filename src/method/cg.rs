@@ -8,6 +8,7 @@ use crate::comm::Communicator;
 use crate::dd::{DdSolver, FaceBlock, IfaceState};
 use crate::error::Result;
 use crate::method::stopping::{finish, stalled};
+use crate::method::Progress;
 use crate::outcome::{Outcome, Status};
 use crate::result::HistoryEntry;
 use crate::scaling::{self, DeluxeBlock, EntryWeights, InterfaceScaling};
@@ -123,7 +124,7 @@ impl DdSolver {
     /// subdomain and one coarse solve) per iteration, plus one interior
     /// solve per subdomain with the Dirichlet choice; the displacement is updated by linearity, so
     /// no solve is added at the end. No allocation per iteration.
-    pub(crate) fn iterate_cg(&mut self, warm: bool, progress: Option<&mut dyn FnMut(usize, f64)>) -> Result<Outcome> {
+    pub(crate) fn iterate_cg(&mut self, warm: bool, progress: Progress<'_>) -> Result<Outcome> {
         // The workspace is taken out for the solve (no allocation) so that
         // the operator (`&mut self`) and the CG vectors are borrowed apart.
         let mut ws = self.cg.take().expect("the CG workspace exists when the method is cg");
@@ -132,12 +133,7 @@ impl DdSolver {
         out
     }
 
-    fn cg_loop(
-        &mut self,
-        ws: &mut CgWorkspace,
-        warm: bool,
-        mut progress: Option<&mut dyn FnMut(usize, f64)>,
-    ) -> Result<Outcome> {
+    fn cg_loop(&mut self, ws: &mut CgWorkspace, warm: bool, mut progress: Progress<'_>) -> Result<Outcome> {
         let t0 = Instant::now();
         if !warm {
             self.reset_unknowns();

@@ -7,6 +7,7 @@
 use crate::dd::DdSolver;
 use crate::error::Result;
 use crate::method::stopping::{finish, stalled, stopping_factor, DIVERGENCE_GROWTH};
+use crate::method::Progress;
 use crate::outcome::{Outcome, Status};
 use crate::result::HistoryEntry;
 use crate::settings::SearchDirection;
@@ -18,11 +19,7 @@ const MAX_D_RESTARTS: usize = 3;
 impl DdSolver {
     /// The seed's stationary iteration (local stage, global step, coarse
     /// step), linear and nonsmooth.
-    pub(crate) fn iterate_stationary(
-        &mut self,
-        warm: bool,
-        mut progress: Option<&mut dyn FnMut(usize, f64)>,
-    ) -> Result<Outcome> {
+    pub(crate) fn iterate_stationary(&mut self, warm: bool, mut progress: Progress<'_>) -> Result<Outcome> {
         let t0 = Instant::now();
         if !warm {
             self.reset_unknowns();
