@@ -25,7 +25,7 @@
 
 use crate::error::{Error, Result};
 use crate::factor::{lower_csc, FactorError, OrderingChoice, OrderingKind, SparseCholesky, PIVOT_RATIO};
-use crate::model::Model;
+use crate::model::{Model, StiffnessScatter};
 use faer::linalg::solvers::Solve;
 use faer::sparse::SparseColMat;
 use faer::Mat;
@@ -134,6 +134,12 @@ pub struct DirectSolver {
     /// entries (zero for a removed cable), so the pattern never changes
     /// and each active-set step is one numeric refactorization.
     without_slack: Option<SparseCholesky>,
+    /// The matrix `without_slack` factors (the pattern of `K`, values
+    /// rewritten in place at each step) and where each element's entries
+    /// go in it: assembling from triplets at each step spent a third of a
+    /// 130² grid's run on the triplets, their sort and the page faults of
+    /// their fresh buffers.
+    slack_stiffness: Option<(SparseColMat<usize, f64>, StiffnessScatter)>,
     /// Numeric refactorizations done by the active set (for tests/reports).
     refactorizations: usize,
 }
@@ -183,6 +189,7 @@ impl DirectSolver {
             schur: Mat::zeros(0, 0),
             schur_max: SCHUR_MAX,
             without_slack: None,
+            slack_stiffness: None,
             refactorizations: 0,
         })
     }
@@ -220,26 +227,34 @@ impl DirectSolver {
         for (c, &e) in model.cables.iter().enumerate() {
             is_slack[e] = slack[c];
         }
-        let taut: Vec<usize> = (0..model.elements.len()).filter(|&e| !is_slack[e]).collect();
-        let loose: Vec<usize> = (0..model.elements.len()).filter(|&e| is_slack[e]).collect();
-        let mut trip = model.stiffness_triplets(&taut, Some);
+        let (k, scatter) = match &mut self.slack_stiffness {
+            Some(m) => m,
+            slot => {
+                let k = assemble(model)?;
+                let scatter = model.stiffness_scatter(&k);
+                slot.insert((k, scatter))
+            }
+        };
         // Slack cables lose their axial stiffness (soft = 0: they stay in
         // the pattern as explicit zeros) and keep their geometric one, as
         // on the Schur path: `K_G` does not depend on the slack set. Scaling
         // the whole block instead made the two paths differ by 46 % of `u`
         // on a 10×10 tensegrity grid with 284 slack cables.
-        trip.extend(model.stiffness_triplets_with_axial(&loose, Some, soft));
-        let k = lower_csc(model.n_free, &trip).map_err(|e| Error::Numerical(format!("{e:?}")))?;
+        model.stiffness_values_into(scatter, |e| if is_slack[e] { soft } else { 1.0 }, k.val_mut());
+        let k = &*k;
         let chol = match &mut self.without_slack {
             Some(f) => f,
-            slot => slot.insert(
-                self.chol
+            slot => {
+                let mut f = self
+                    .chol
                     .sharing_symbolic(1)
-                    .map_err(|e| Error::Numerical(format!("{e:?}")))?,
-            ),
+                    .map_err(|e| Error::Numerical(format!("{e:?}")))?;
+                f.keep_numeric_workspace();
+                slot.insert(f)
+            }
         };
         self.refactorizations += 1;
-        chol.refactor(&k, PIVOT_RATIO).map_err(|e| match e {
+        chol.refactor(k, PIVOT_RATIO).map_err(|e| match e {
             FactorError::Pivot { dof, .. } => {
                 let (node, c) = model.dof_owner(dof);
                 Error::Mechanism(format!(

@@ -52,6 +52,11 @@ pub struct SparseCholesky {
     /// off-diagonal blocks in the forward substitution ([`perm_buffer`]).
     perm_buf: Vec<f64>,
     ordering: OrderingKind,
+    /// The numeric factorization's workspace, kept between
+    /// refactorizations once [`SparseCholesky::keep_numeric_workspace`]
+    /// asks for it (a fresh one costs its page faults at every step).
+    numeric_workspace: Option<MemBuffer>,
+    keep_numeric_workspace: bool,
     /// Parallelism of the numeric factorization (solves stay sequential).
     par: Par,
     /// Seconds spent in the symbolic analysis (with the AMD ordering unless
@@ -252,6 +257,8 @@ impl SparseCholesky {
             scratch,
             scratch_cols: max_rhs,
             ordering,
+            numeric_workspace: None,
+            keep_numeric_workspace: false,
             par,
             timings: FactorTimings {
                 symbolic_s,
@@ -275,8 +282,13 @@ impl SparseCholesky {
         let n = self.n;
         let t = std::time::Instant::now();
         let symbolic = &*self.symbolic;
-        let fact_req = symbolic.factorize_numeric_llt_scratch::<f64>(self.par, Spec::default());
-        let mut fbuf = MemBuffer::try_new(fact_req).map_err(|_| FactorError::Internal("out of memory".into()))?;
+        let mut fbuf = match self.numeric_workspace.take() {
+            Some(b) => b,
+            None => {
+                let fact_req = symbolic.factorize_numeric_llt_scratch::<f64>(self.par, Spec::default());
+                MemBuffer::try_new(fact_req).map_err(|_| FactorError::Internal("out of memory".into()))?
+            }
+        };
         let res = symbolic.factorize_numeric_llt(
             &mut self.l_values,
             lower.as_ref(),
@@ -286,7 +298,9 @@ impl SparseCholesky {
             MemStack::new(&mut fbuf),
             Spec::default(),
         );
-        drop(fbuf);
+        if self.keep_numeric_workspace {
+            self.numeric_workspace = Some(fbuf);
+        }
         self.timings.numeric_s = t.elapsed().as_secs_f64();
         let perm_fwd: Vec<usize> = match symbolic.perm() {
             Some(p) => p.arrays().0.to_vec(),
@@ -338,9 +352,18 @@ impl SparseCholesky {
             scratch_cols: max_rhs,
             perm_buf: perm_buffer(&self.symbolic, max_rhs),
             ordering: self.ordering,
+            numeric_workspace: None,
+            keep_numeric_workspace: false,
             par: self.par,
             timings: FactorTimings::default(),
         })
+    }
+
+    /// Keeps the numeric factorization's workspace between
+    /// [`SparseCholesky::refactor`]s of this factor (the direct active
+    /// set's steps) instead of allocating it afresh each time.
+    pub(crate) fn keep_numeric_workspace(&mut self) {
+        self.keep_numeric_workspace = true;
     }
 
     /// The fill-reducing ordering this factor was computed with.
@@ -557,6 +580,8 @@ impl SparseCholesky {
             scratch_cols: self.scratch_cols,
             perm_buf: perm_buffer(&self.symbolic, self.scratch_cols),
             ordering: self.ordering,
+            numeric_workspace: None,
+            keep_numeric_workspace: false,
             par: self.par,
             timings: self.timings,
         })

@@ -7,6 +7,7 @@
 
 use crate::error::{Error, Result};
 use crate::scene::{Effects, ElementKind, Scene};
+use faer::sparse::SparseColMat;
 
 /// Marker for a blocked (supported) displacement component.
 pub const FIXED: usize = usize::MAX;
@@ -324,24 +325,70 @@ impl Model {
     ) -> Vec<(usize, usize, f64)> {
         let mut t = Vec::with_capacity(elements.len() * 21);
         for &e in elements {
-            let el = &self.elements[e];
-            let g = el.block_with_axial(axial * el.k);
-            let dofs = self.element_dofs(e);
-            let loc: [Option<usize>; 6] = std::array::from_fn(|i| if dofs[i] == FIXED { None } else { local(dofs[i]) });
-            for i in 0..6 {
-                let Some(r) = loc[i] else { continue };
-                for j in 0..6 {
-                    let Some(c) = loc[j] else { continue };
-                    if r < c {
-                        continue;
-                    }
-                    let s = if (i < 3) == (j < 3) { 1.0 } else { -1.0 };
-                    let v = s * g[i % 3][j % 3];
-                    t.push((r, c, v));
-                }
-            }
+            self.for_each_stiffness_entry(e, &local, axial, |r, c, v| t.push((r, c, v)));
         }
         t
+    }
+
+    /// The lower-triangle entries `(row, col, value)` of element `e`'s
+    /// stiffness (axial part scaled by `axial`, geometric part kept), in the
+    /// numbering `local(dof)`, always in the same order: the order of
+    /// [`Self::stiffness_triplets`] and of [`StiffnessScatter`]'s positions.
+    fn for_each_stiffness_entry(
+        &self,
+        e: usize,
+        local: impl Fn(usize) -> Option<usize>,
+        axial: f64,
+        mut entry: impl FnMut(usize, usize, f64),
+    ) {
+        let el = &self.elements[e];
+        let g = el.block_with_axial(axial * el.k);
+        let dofs = self.element_dofs(e);
+        let loc: [Option<usize>; 6] = std::array::from_fn(|i| if dofs[i] == FIXED { None } else { local(dofs[i]) });
+        for i in 0..6 {
+            let Some(r) = loc[i] else { continue };
+            for j in 0..6 {
+                let Some(c) = loc[j] else { continue };
+                if r < c {
+                    continue;
+                }
+                let s = if (i < 3) == (j < 3) { 1.0 } else { -1.0 };
+                entry(r, c, s * g[i % 3][j % 3]);
+            }
+        }
+    }
+
+    /// Where every element's stiffness entries fall among the values of
+    /// `k`, the lower triangle of the whole structure's stiffness (free
+    /// dofs) as [`crate::factor::lower_csc`] assembles it from
+    /// [`Self::stiffness_triplets`] of all elements.
+    pub fn stiffness_scatter(&self, k: &SparseColMat<usize, f64>) -> StiffnessScatter {
+        let (col_ptr, row_idx) = (k.symbolic().col_ptr(), k.symbolic().row_idx());
+        let mut positions = Vec::with_capacity(self.elements.len() * 21);
+        for e in 0..self.elements.len() {
+            self.for_each_stiffness_entry(e, Some, 1.0, |r, c, _| {
+                let col = &row_idx[col_ptr[c]..col_ptr[c + 1]];
+                let at = col
+                    .binary_search(&r)
+                    .expect("every element entry is in the assembled pattern");
+                positions.push(col_ptr[c] + at);
+            });
+        }
+        StiffnessScatter { positions }
+    }
+
+    /// The values of the whole structure's stiffness (the pattern
+    /// `scatter` was made for) with each element's axial stiffness scaled
+    /// by `axial(e)`: assembled in place, without the triplets and the
+    /// sort of a fresh assembly (the direct active set's refactorizations).
+    pub fn stiffness_values_into(&self, scatter: &StiffnessScatter, axial: impl Fn(usize) -> f64, values: &mut [f64]) {
+        values.iter_mut().for_each(|v| *v = 0.0);
+        let mut at = scatter.positions.iter();
+        for e in 0..self.elements.len() {
+            self.for_each_stiffness_entry(e, Some, axial(e), |_, _, v| {
+                values[*at.next().expect("one position per entry")] += v;
+            });
+        }
     }
 
     /// Slack flag per element: a cable is slack when its slack `λ` exceeds
@@ -456,4 +503,10 @@ impl Model {
     pub fn length_scale(&self) -> f64 {
         self.elements.iter().map(|e| e.length).fold(0.0, f64::max)
     }
+}
+
+/// The value position of every element stiffness entry in an assembled
+/// lower-triangle matrix ([`Model::stiffness_scatter`]).
+pub struct StiffnessScatter {
+    positions: Vec<usize>,
 }

@@ -246,6 +246,41 @@ fn slack_cables_keep_their_geometric_stiffness_on_both_paths() {
     assert!(rel_err(&a.u, &c.u) < 1e-11, "{:e}", rel_err(&a.u, &c.u));
 }
 
+/// The refactoring path writes the stiffness of each slack set in place
+/// on `K`'s pattern (`Model::stiffness_values_into`): the same matrix as a
+/// fresh assembly from the taut elements' triplets and the loose ones'
+/// with their axial stiffness scaled, to round-off of the summation order,
+/// with geometric stiffness and with cables removed or softened.
+#[test]
+fn the_in_place_assembly_is_a_fresh_assembly() {
+    let scene = tensegrity(&TensegrityParams {
+        nx: 5,
+        ny: 4,
+        load: 1.0,
+        ..Default::default()
+    });
+    assert!(scene.effects.geometric_stiffness);
+    let model = Model::from_scene(&scene).unwrap();
+    let all: Vec<usize> = (0..model.elements.len()).collect();
+    let mut k = nsdd::factor::lower_csc(model.n_free, &model.stiffness_triplets(&all, Some)).unwrap();
+    let scatter = model.stiffness_scatter(&k);
+    for soft in [0.0, 0.25] {
+        let loose = |e: usize| e % 3 == 1 && model.cables.contains(&e);
+        let (taut, out): (Vec<usize>, Vec<usize>) = all.iter().partition(|&&e| !loose(e));
+        let mut trip = model.stiffness_triplets(&taut, Some);
+        trip.extend(model.stiffness_triplets_with_axial(&out, Some, soft));
+        let fresh = nsdd::factor::lower_csc(model.n_free, &trip).unwrap();
+        model.stiffness_values_into(&scatter, |e| if loose(e) { soft } else { 1.0 }, k.val_mut());
+        assert_eq!(k.symbolic().col_ptr(), fresh.symbolic().col_ptr());
+        assert_eq!(k.symbolic().row_idx(), fresh.symbolic().row_idx());
+        let scale = fresh.val().iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        for (a, b) in k.val().iter().zip(fresh.val()) {
+            assert!((a - b).abs() <= 1e-14 * scale, "soft {soft}: {a} against {b}");
+        }
+        assert!(out.len() > 10);
+    }
+}
+
 #[test]
 fn energy_is_minimal_at_the_solution() {
     // The solution minimises ½ Σ k (e+e0)² (bars) + ½ Σ k max(0, e+e0)²
