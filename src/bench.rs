@@ -213,12 +213,17 @@ pub fn dd_profile(scene: &Scene, subdomains: usize, iterations: usize, method: M
     let t1 = best(1)?;
     let tk = best(1 + iterations)?;
     let iteration_s = ((tk - t1) / iterations as f64).max(0.0);
-    let interior_substitution_s = if method == Method::Cg {
-        dd.interior_substitution_time(10)
-    } else {
-        0.0
-    };
-    let substitution_s = dd.substitution_time(10) + interior_substitution_s;
+    // On a worker thread, as the iteration runs (`DdSolver::solve`): timed
+    // from the caller's thread, the bound would carry the hand-over of its
+    // work to the pool, which the iteration no longer pays.
+    let (interior_substitution_s, substitution_s) = rayon::scope(|_| {
+        let interior = if method == Method::Cg {
+            dd.interior_substitution_time(10)
+        } else {
+            0.0
+        };
+        (interior, dd.substitution_time(10) + interior)
+    });
     let ns = dd.n_subdomains();
     let stats = dd.stats();
     Ok(DdProfile {
