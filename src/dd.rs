@@ -581,6 +581,20 @@ impl DdSolver {
         pooled: Option<(PooledBlocks, PooledCoarse)>,
         placement: Placement,
     ) -> Result<DdSolver> {
+        on_workers(placement.in_process(), || {
+            Self::set_up_here(model, dec, opts, reused, pooled, placement)
+        })
+    }
+
+    /// [`Self::set_up_reusing`] on the thread that runs it.
+    fn set_up_here(
+        model: &Model,
+        dec: &Decomposition,
+        opts: DdOptions,
+        reused: Vec<Option<SubdomainOperator>>,
+        pooled: Option<(PooledBlocks, PooledCoarse)>,
+        placement: Placement,
+    ) -> Result<DdSolver> {
         let t0 = Instant::now();
         let mut opts = opts;
         opts.adaptive_threshold = adaptive::threshold_for(opts.adaptive_threshold, model);
@@ -598,7 +612,9 @@ impl DdSolver {
 
     /// Sets up an algebraic problem (already factored operators).
     pub fn from_problem(problem: DdProblem<'_>, opts: DdOptions) -> Result<DdSolver> {
-        Self::from_problem_named(problem, opts, &|d| format!("global dof {d}"), None)
+        on_workers(problem.placement.in_process(), || {
+            Self::from_problem_named(problem, opts, &|d| format!("global dof {d}"), None)
+        })
     }
 
     /// [`DdSolver::from_problem`]; a mechanism message names the dof that

@@ -15,7 +15,9 @@ pub mod stopping;
 pub type Progress<'a> = Option<&'a mut (dyn FnMut(usize, f64) + Send)>;
 
 /// Runs `f` on a worker thread of the current rayon pool (at once if this
-/// thread is one already) when `in_process`, else on this thread: under
+/// thread is one already) when `in_process`, else on this thread. The
+/// solves and set-ups start here (`solve::solve_in`, `DdSolver`'s set-ups
+/// and `solve`, the nonsmooth cg's active set). Under
 /// MPI the thread that drives a solve is the one that calls MPI, which is
 /// initialised with `MPI_THREAD_FUNNELED`.
 ///
