@@ -25,6 +25,7 @@
 
 use crate::error::{Error, Result};
 use crate::factor::{lower_csc, FactorError, OrderingChoice, OrderingKind, SparseCholesky, PIVOT_RATIO};
+use crate::method::on_workers;
 use crate::model::{Model, StiffnessScatter};
 use faer::linalg::solvers::Solve;
 use faer::sparse::SparseColMat;
@@ -152,6 +153,13 @@ impl DirectSolver {
 
     /// [`DirectSolver::new`] in the fill-reducing ordering `ordering` asks for.
     pub fn with_ordering(model: &Model, ordering: OrderingChoice) -> Result<DirectSolver> {
+        // faer's parallel factorization started from a worker (`on_workers`;
+        // no MPI here: every rank that solves directly solves alone).
+        on_workers(true, || Self::factor_here(model, ordering))
+    }
+
+    /// [`Self::with_ordering`] on the thread that runs it.
+    fn factor_here(model: &Model, ordering: OrderingChoice) -> Result<DirectSolver> {
         let t = std::time::Instant::now();
         let k = assemble(model)?;
         let assembly_s = t.elapsed().as_secs_f64();
@@ -288,6 +296,11 @@ impl DirectSolver {
     /// Solves the equilibrium for the right-hand side `b = f − H k e0`
     /// (see [`Model::rhs`]), with exact cable complementarity.
     pub fn solve(&mut self, model: &Model, b: &[f64]) -> Result<Equilibrium> {
+        on_workers(true, || self.active_set(model, b))
+    }
+
+    /// [`Self::solve`] on the thread that runs it.
+    fn active_set(&mut self, model: &Model, b: &[f64]) -> Result<Equilibrium> {
         let nc = model.cables.len();
         let mut u0 = b.to_vec();
         self.chol.solve_in_place(&mut u0);
