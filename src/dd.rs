@@ -582,32 +582,20 @@ impl DdSolver {
         placement: Placement,
     ) -> Result<DdSolver> {
         on_workers(placement.in_process(), || {
-            Self::set_up_here(model, dec, opts, reused, pooled, placement)
+            let t0 = Instant::now();
+            let mut opts = opts;
+            opts.adaptive_threshold = adaptive::threshold_for(opts.adaptive_threshold, model);
+            let problem = DdProblem::from_model_reusing(model, dec, reused, placement, opts.ordering)?;
+            let factor_s = t0.elapsed().as_secs_f64();
+            let name_dof = |d: usize| {
+                let (node, c) = model.dof_owner(d);
+                format!("node {node}, component {}", ["x", "y", "z"][c])
+            };
+            let mut solver = DdSolver::from_problem_named(problem, opts, &name_dof, pooled)?;
+            solver.stats.setup_s = t0.elapsed().as_secs_f64();
+            solver.stats.factor_s = factor_s;
+            Ok(solver)
         })
-    }
-
-    /// [`Self::set_up_reusing`] on the thread that runs it.
-    fn set_up_here(
-        model: &Model,
-        dec: &Decomposition,
-        opts: DdOptions,
-        reused: Vec<Option<SubdomainOperator>>,
-        pooled: Option<(PooledBlocks, PooledCoarse)>,
-        placement: Placement,
-    ) -> Result<DdSolver> {
-        let t0 = Instant::now();
-        let mut opts = opts;
-        opts.adaptive_threshold = adaptive::threshold_for(opts.adaptive_threshold, model);
-        let problem = DdProblem::from_model_reusing(model, dec, reused, placement, opts.ordering)?;
-        let factor_s = t0.elapsed().as_secs_f64();
-        let name_dof = |d: usize| {
-            let (node, c) = model.dof_owner(d);
-            format!("node {node}, component {}", ["x", "y", "z"][c])
-        };
-        let mut solver = DdSolver::from_problem_named(problem, opts, &name_dof, pooled)?;
-        solver.stats.setup_s = t0.elapsed().as_secs_f64();
-        solver.stats.factor_s = factor_s;
-        Ok(solver)
     }
 
     /// Sets up an algebraic problem (already factored operators).
