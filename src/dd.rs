@@ -276,11 +276,12 @@ pub(crate) struct SubState {
     /// `Z_E = K_E⁺ W_E` (`n × m_E`) and the global macro index of each column.
     pub(crate) z: Mat<f64>,
     pub(crate) macro_cols: Vec<usize>,
-    /// The rows of `Z_E` and `W_E` at `iface_dofs` (`W_E` is zero
-    /// elsewhere): the coarse right-hand side and the macro forces of a
-    /// homogeneous global step ([`crate::operator::InterfaceOperator`]).
+    /// The rows of `Z_E` at `iface_dofs`, and the non-zeros of `W_E`
+    /// (which is zero off those dofs): the coarse right-hand side and the
+    /// macro forces of a homogeneous global step
+    /// ([`crate::operator::InterfaceOperator`]).
     pub(crate) z_iface: Mat<f64>,
-    pub(crate) w_iface: Mat<f64>,
+    pub(crate) w_cols: SparseColumns,
     /// Scratch of `iface_dofs`' length, and this subdomain's part of the
     /// macro right-hand side (one entry per macro column).
     pub(crate) rb: Vec<f64>,
@@ -308,6 +309,49 @@ pub(crate) struct SubState {
     /// What `z` and this subdomain's coarse contribution were computed
     /// from, kept for a later set-up; `None`: not kept.
     pub(crate) coarse_kept: Option<CoarseBlocks>,
+}
+
+/// The non-zeros of a matrix with few per column, by column: `W_E`, whose
+/// column for a macro unknown of interface `i` lives on that interface's
+/// dofs only (a dense `|interface dofs of E| × m_E` block multiplied
+/// mostly zeros: 7 % of the solve of the 30³ tower at contrast 1e4 with 16
+/// subdomains, where `m_E` is in the hundreds).
+#[derive(Debug, Clone, Default)]
+pub(crate) struct SparseColumns {
+    start: Vec<usize>,
+    row: Vec<u32>,
+    value: Vec<f64>,
+}
+
+impl SparseColumns {
+    /// The non-zeros of `dense`, whose row `i` is local dof `rows[i]`.
+    pub(crate) fn from_dense(rows: &[u32], dense: &Mat<f64>) -> SparseColumns {
+        let mut out = SparseColumns {
+            start: Vec::with_capacity(dense.ncols() + 1),
+            ..SparseColumns::default()
+        };
+        out.start.push(0);
+        for j in 0..dense.ncols() {
+            for (&l, &v) in rows.iter().zip(dense.col(j).iter()) {
+                if v != 0.0 {
+                    out.row.push(l);
+                    out.value.push(v);
+                }
+            }
+            out.start.push(out.row.len());
+        }
+        out
+    }
+
+    /// Column `k` as (local dof, value), rows increasing.
+    #[inline]
+    pub(crate) fn col(&self, k: usize) -> impl Iterator<Item = (usize, f64)> + '_ {
+        let range = self.start[k]..self.start[k + 1];
+        self.row[range.clone()]
+            .iter()
+            .zip(&self.value[range])
+            .map(|(&l, &v)| (l as usize, v))
+    }
 }
 
 /// A subdomain's coarse blocks `L_E = W_Eᵀ Z_E`, `G_E = W_Eᵀ R_E` and the
@@ -866,7 +910,7 @@ impl DdSolver {
                 coarse_kept,
                 macro_cols: Vec::new(),
                 z_iface: Mat::zeros(0, 0),
-                w_iface: Mat::zeros(0, 0),
+                w_cols: SparseColumns::default(),
                 rb: Vec::new(),
                 zt_r: Vec::new(),
                 fm: Vec::new(),
@@ -993,7 +1037,7 @@ impl DdSolver {
                             g: g_e.clone(),
                         });
                     }
-                    st.w_iface = wi;
+                    st.w_cols = SparseColumns::from_dense(rows, &wi);
                     st.rb = vec![0.0; rows.len()];
                     st.zt_r = vec![0.0; m];
                     st.fm = vec![0.0; m];

@@ -87,8 +87,8 @@ fn take_coarse_solution(s: &mut SubState, coarse: &CoarseProblem) {
 fn subtract_macro_forces(s: &mut SubState) {
     for (k, &fk) in s.fm.iter().enumerate() {
         if fk != 0.0 {
-            for (&l, w) in s.iface_dofs.iter().zip(s.w_iface.col(k).iter()) {
-                s.r[l as usize] -= w * fk;
+            for (l, w) in s.w_cols.col(k) {
+                s.r[l] -= w * fk;
             }
         }
     }
@@ -240,10 +240,9 @@ impl<C: Communicator> InterfaceOperator<C> {
         if !before {
             // `W_Eᵀ y_E` (W_E is zero off the interface dofs) and `R_Eᵀ r_E`.
             self.subs.par_iter_mut().for_each(|s| {
-                for (x, &l) in s.rb.iter_mut().zip(&s.iface_dofs) {
-                    *x = s.y[l as usize];
+                for (k, z) in s.zt_r.iter_mut().enumerate() {
+                    *z = s.w_cols.col(k).map(|(l, w)| w * s.y[l]).sum();
                 }
-                columns_dot(&s.w_iface, &s.rb, &mut s.zt_r);
                 let r = s.op.kernel();
                 for (q, rt) in s.rt_r.iter_mut().enumerate() {
                     *rt = r.col(q).iter().zip(&s.r).map(|(a, b)| a * b).sum();
