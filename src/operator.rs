@@ -43,7 +43,7 @@ pub struct InterfaceOperator<C: Communicator = Threads> {
 #[inline]
 fn columns_dot(a: &faer::Mat<f64>, x: &[f64], out: &mut [f64]) {
     for (k, o) in out.iter_mut().enumerate() {
-        *o = a.col(k).iter().zip(x).map(|(a, b)| a * b).sum();
+        *o = kernels::dot(a.col(k).try_as_col_major().expect("contiguous column").as_slice(), x);
     }
 }
 
@@ -119,12 +119,8 @@ fn macro_jump_rhs(subs: &mut [SubState], ifaces: &[IfaceState]) {
             let range = it.macro_off..it.macro_off + it.p.ncols();
             for (k, &c) in s.macro_cols.iter().enumerate() {
                 if range.contains(&c) {
-                    s.zt_r[k] =
-                        it.p.col(c - it.macro_off)
-                            .iter()
-                            .zip(&it.jump)
-                            .map(|(a, b)| a * b)
-                            .sum();
+                    let col = it.p.col(c - it.macro_off);
+                    s.zt_r[k] = kernels::dot(col.try_as_col_major().expect("contiguous column").as_slice(), &it.jump);
                 }
             }
         }
@@ -135,7 +131,7 @@ fn macro_jump_rhs(subs: &mut [SubState], ifaces: &[IfaceState]) {
 fn remove_macro_part(x: &mut [f64], p: &faer::Mat<f64>) {
     for q in 0..p.ncols() {
         let col = p.col(q);
-        let c: f64 = col.iter().zip(x.iter()).map(|(a, b)| a * b).sum();
+        let c = kernels::dot(col.try_as_col_major().expect("contiguous column").as_slice(), x);
         for (v, a) in x.iter_mut().zip(col.iter()) {
             *v -= c * a;
         }
@@ -144,7 +140,7 @@ fn remove_macro_part(x: &mut [f64], p: &faer::Mat<f64>) {
 
 #[inline]
 fn dot(x: &[f64], y: &[f64]) -> f64 {
-    x.iter().zip(y).map(|(a, b)| a * b).sum::<f64>()
+    kernels::dot(x, y)
 }
 
 impl<C: Communicator> InterfaceOperator<C> {
@@ -245,7 +241,7 @@ impl<C: Communicator> InterfaceOperator<C> {
                 }
                 let r = s.op.kernel();
                 for (q, rt) in s.rt_r.iter_mut().enumerate() {
-                    *rt = r.col(q).iter().zip(&s.r).map(|(a, b)| a * b).sum();
+                    *rt = kernels::dot(r.col(q).try_as_col_major().expect("contiguous column").as_slice(), &s.r);
                 }
             });
         }
@@ -512,7 +508,10 @@ impl<C: Communicator> InterfaceOperator<C> {
             let p = &self.ifaces[i].p;
             let mut m = 0.0;
             for q in 0..p.ncols() {
-                let c: f64 = p.col(q).iter().zip(&x[i]).map(|(a, b)| a * b).sum();
+                let c = kernels::dot(
+                    p.col(q).try_as_col_major().expect("contiguous column").as_slice(),
+                    &x[i],
+                );
                 m += c * c;
             }
             [m, kernels::norm2(&x[i])]

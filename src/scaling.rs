@@ -483,7 +483,7 @@ impl DeluxeBlock {
                 *x = y_lo[lo_idx[f] as usize] + y_hi[hi_idx[f] as usize];
             }
             for ((yk, col), &f) in self.y.iter_mut().zip(self.d.chunks_exact(n)).zip(&self.entries) {
-                let dot: f64 = col.iter().zip(&self.x).map(|(a, b)| a * b).sum();
+                let dot = crate::kernels::dot(col, &self.x);
                 *yk = dot - y_hi[hi_idx[f as usize] as usize];
             }
         } else {
@@ -494,8 +494,8 @@ impl DeluxeBlock {
             }
             let cols = self.d.chunks_exact(n).zip(self.d_lo.chunks_exact(n));
             for (yk, (c_hi, c_lo)) in self.y.iter_mut().zip(cols) {
-                let a: f64 = c_hi.iter().zip(&self.x).map(|(a, b)| a * b).sum();
-                let b: f64 = c_lo.iter().zip(&self.x2).map(|(a, b)| a * b).sum();
+                let a = crate::kernels::dot(c_hi, &self.x);
+                let b = crate::kernels::dot(c_lo, &self.x2);
                 *yk = a - b;
             }
         }
