@@ -1030,7 +1030,11 @@ fn bench_iteration_times_cg_against_subdomain_and_interior_substitutions() {
         cg["interior_substitution_s"].as_f64().unwrap(),
     );
     assert!(int > 0.0 && sub > int, "bound {sub} with interiors {int}");
-    assert!(cg["iteration_s"].as_f64().unwrap() > 0.0);
+    // A time, not a speed: on 795 dofs one iteration is ~50 µs, and on a
+    // busy machine the best of four iterations can come out no slower than
+    // the best of one (the difference is then reported as 0).
+    let it = cg["iteration_s"].as_f64().unwrap();
+    assert!(it.is_finite() && it >= 0.0, "iteration_s {it}");
     let ml = rows("multilevel");
     assert_eq!(ml["method"], "multilevel");
     assert_eq!(ml["interior_substitution_s"].as_f64(), Some(0.0));
