@@ -83,6 +83,7 @@ fn multilevel(max_iterations: usize) -> DdOptions {
         preconditioner: Default::default(),
         interface_scaling: Default::default(),
         adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
+        adaptive_edges: false,
         ordering: Default::default(),
     }
 }

@@ -579,6 +579,19 @@ enum NsddStatus nsdd_options_set_adaptive_threshold(struct NsddOptions *options,
 enum NsddStatus nsdd_options_set_adaptive_threshold_auto(struct NsddOptions *options);
 
 /**
+ * Switches `cg`'s adaptive constraints on the edges (dofs shared by three
+ * or more subdomains) on (`enable` non-zero) or off, overriding the
+ * scene's `[solver] adaptive_edges`; they need the adaptive macro space
+ * ([`nsdd_options_set_adaptive_threshold`]). Off by default: on 3D towers
+ * whose bars are far stiffer than their cables they cut the iterations
+ * 4-10×, but a large coarse problem can stall short of the tolerance.
+ *
+ * # Safety
+ * `options` must be a live options handle.
+ */
+enum NsddStatus nsdd_options_set_adaptive_edges(struct NsddOptions *options, int enable);
+
+/**
  * Sets the automatic partitioner, overriding the scene's `[solver]
  * partitioner`: a [`NsddPartitioner`] value, 0 coordinate bisection, 1
  * METIS k-way; any other value is

@@ -31,7 +31,7 @@ use crate::method::{on_workers, Progress};
 use crate::model::{Model, FIXED};
 use crate::operator::InterfaceOperator;
 use crate::outcome::{Outcome, Refinement, Status};
-use crate::scaling::InterfaceScaling;
+use crate::scaling::{Edges, InterfaceEntries, InterfaceScaling};
 use crate::settings::{
     AdaptiveThreshold, MethodConfig, OrderingChoice, Preconditioner, SearchDirection, SolverSettings,
 };
@@ -61,6 +61,8 @@ pub struct DdOptions {
     /// ([`crate::adaptive`]); `Auto` is resolved from the model's element
     /// stiffnesses at set-up (off for an algebraic problem).
     pub adaptive_threshold: AdaptiveThreshold,
+    /// Adaptive constraints on the edges too ([`crate::adaptive`]).
+    pub adaptive_edges: bool,
     /// Fill-reducing ordering of the subdomain and interior factors.
     pub ordering: OrderingChoice,
 }
@@ -85,6 +87,7 @@ impl DdOptions {
             preconditioner: s.preconditioner,
             interface_scaling: s.interface_scaling,
             adaptive_threshold: s.adaptive_threshold,
+            adaptive_edges: s.adaptive_edges,
             ordering: s.ordering,
         })
     }
@@ -422,8 +425,11 @@ pub struct DdStats {
     pub kernel_dims: Vec<usize>,
     pub macro_unknowns: usize,
     /// Macro columns the adaptive macro space added (included in
-    /// `macro_unknowns`).
+    /// `macro_unknowns`), on faces and edges.
     pub adaptive_columns: usize,
+    /// Of [`Self::adaptive_columns`], those on edges (dofs shared by three
+    /// or more subdomains).
+    pub adaptive_edge_columns: usize,
     /// The threshold of the adaptive macro space used (0: off; `"auto"`
     /// resolved).
     pub adaptive_threshold: f64,
@@ -765,6 +771,7 @@ impl DdSolver {
         let touched = |it: &IfaceState| local(it.lo).is_some() || local(it.hi).is_some();
         let mut n_macro = 0;
         let mut adaptive_columns = 0;
+        let mut adaptive_edge_columns = 0;
         // Already resolved from the model where there is one; off for an
         // algebraic problem, which has no element stiffnesses to judge by.
         let adaptive_threshold = opts.adaptive_threshold.resolve(std::iter::empty());
@@ -807,7 +814,47 @@ impl DdSolver {
             } else {
                 (Vec::new(), Vec::new())
             };
+            // Then the edges: every subdomain's blocks on its edges, to
+            // every process (each edge's problems need all its subdomains),
+            // and one set of constraints per edge, on the interfaces of a
+            // spanning tree of its pairs (docs/design.md §4).
+            let edge_columns: Vec<Vec<(Vec<u32>, Mat<f64>)>> = if adaptive_on && opts.adaptive_edges {
+                let entries: Vec<InterfaceEntries<'_>> = dec
+                    .interfaces
+                    .iter()
+                    .map(|it| InterfaceEntries {
+                        lo: it.lo,
+                        hi: it.hi,
+                        lo_idx: &dec.entry_lo_local[it.start..it.end],
+                        hi_idx: &dec.entry_hi_local[it.start..it.end],
+                    })
+                    .collect();
+                let dofs: Vec<Vec<usize>> = dec.subdomains.iter().map(|sd| sd.dofs.clone()).collect();
+                let mult: Vec<Vec<u32>> = dec.subdomains.iter().map(|sd| sd.multiplicity.clone()).collect();
+                let edges = Edges::new(&entries, &dofs, &mult);
+                drop((entries, dofs, mult));
+                let pool = pooled.as_mut().expect("the face sides set it");
+                let held = seam.agree(adaptive::edge_sides(&edges, first, &mut operators, pool))?;
+                let constraints = adaptive::edge_constraints(&edges, &seam.gather(&held), adaptive_threshold);
+                let ends: Vec<(usize, usize)> = dec.interfaces.iter().map(|it| (it.lo, it.hi)).collect();
+                let has_face: Vec<bool> = face_entries.iter().map(|f| !f.is_empty()).collect();
+                let mut per_interface: Vec<Vec<(Vec<u32>, Mat<f64>)>> = vec![Vec::new(); ends.len()];
+                for (tree, c) in adaptive::edge_trees(&edges, &ends, &has_face)
+                    .into_iter()
+                    .zip(constraints)
+                {
+                    if let Some(c) = c {
+                        for (i, entries) in tree {
+                            per_interface[i].push((entries, c.clone()));
+                        }
+                    }
+                }
+                per_interface
+            } else {
+                Vec::new()
+            };
             let n_adaptive = std::sync::atomic::AtomicUsize::new(0);
+            let n_edge = std::sync::atomic::AtomicUsize::new(0);
             let blocks: Vec<Option<Mat<f64>>> = dec
                 .interfaces
                 .par_iter()
@@ -829,10 +876,20 @@ impl DdSolver {
                         let dofs = &dec.entry_dof[it.start..it.end];
                         let (points, comp): (Vec<[f64; 3]>, Vec<usize>) = dofs.iter().map(|&d| dof_points[d]).unzip();
                         let p = MacroBasis::interface_block(&points, &comp, &tlo, &thi);
-                        match face_sides.get(i) {
+                        let p = match face_sides.get(i) {
                             Some([Some(lo), Some(hi)]) => {
                                 let (p, added) = adaptive::enrich(p, &face_entries[i], lo, hi, adaptive_threshold);
                                 n_adaptive.fetch_add(added, std::sync::atomic::Ordering::Relaxed);
+                                p
+                            }
+                            _ => p,
+                        };
+                        match edge_columns.get(i) {
+                            Some(extra) if !extra.is_empty() => {
+                                let extra: Vec<(&[u32], &Mat<f64>)> =
+                                    extra.iter().map(|(e, c)| (e.as_slice(), c)).collect();
+                                let (p, added) = adaptive::with_columns(p, &extra);
+                                n_edge.fetch_add(added, std::sync::atomic::Ordering::Relaxed);
                                 p
                             }
                             _ => p,
@@ -840,8 +897,9 @@ impl DdSolver {
                     })
                 })
                 .collect();
-            drop(traces);
-            adaptive_columns = n_adaptive.into_inner();
+            drop((traces, edge_columns));
+            adaptive_edge_columns = n_edge.into_inner();
+            adaptive_columns = n_adaptive.into_inner() + adaptive_edge_columns;
             if adaptive_on {
                 adaptive_s = t_adaptive.elapsed().as_secs_f64();
             }
@@ -1093,6 +1151,7 @@ impl DdSolver {
             kernel_dims: kernel_dims.clone(),
             macro_unknowns: n_macro,
             adaptive_columns,
+            adaptive_edge_columns,
             adaptive_threshold,
             adaptive_s,
             kernel_unknowns: alpha_off,
@@ -1823,6 +1882,7 @@ pub(crate) fn cg_test_problem_on(scene: &crate::scene::Scene, subdomains: usize)
         preconditioner: Preconditioner::Dirichlet,
         interface_scaling: InterfaceScaling::Deluxe,
         adaptive_threshold: AdaptiveThreshold::OFF,
+        adaptive_edges: false,
         ordering: Default::default(),
     };
     (model, dec, opts)

@@ -186,6 +186,8 @@ pub struct NonsmoothOptions {
     pub interface_scaling: InterfaceScaling,
     /// See [`crate::settings::SolverSettings::adaptive_threshold`].
     pub adaptive_threshold: AdaptiveThreshold,
+    /// See [`crate::settings::SolverSettings::adaptive_edges`].
+    pub adaptive_edges: bool,
     /// Fill-reducing ordering of the subdomain and interior factors.
     pub ordering: OrderingChoice,
 }
@@ -595,6 +597,7 @@ impl NonsmoothCg {
             preconditioner: self.opts.preconditioner,
             interface_scaling: self.opts.interface_scaling,
             adaptive_threshold: self.opts.adaptive_threshold,
+            adaptive_edges: self.opts.adaptive_edges,
             tolerance: self.opts.tolerance,
             max_iterations: self.opts.max_iterations,
             search_direction: SearchDirection::Auto,

@@ -314,6 +314,14 @@ pub struct SolverSettings {
     /// ([`AdaptiveThreshold`]).
     #[serde(default, skip_serializing_if = "AdaptiveThreshold::is_auto")]
     pub adaptive_threshold: AdaptiveThreshold,
+    /// With the adaptive macro space, constraints on the edges too (the
+    /// dofs shared by three or more subdomains), from the same eigenproblems
+    /// on every pair of an edge's subdomains (`crate::adaptive`). Off by
+    /// default (not written then): on the 3D towers whose bars are 1e4 ×
+    /// their cables it cuts `cg`'s iterations 4-10×, but a large coarse
+    /// problem can then stall short of the tolerance (docs/design.md §4).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub adaptive_edges: bool,
     /// Automatic partition into `subdomains` (ignored when the elements
     /// carry their subdomain). Not written when it is the default, so that
     /// scenes stay readable by versions without the field.
@@ -442,6 +450,7 @@ impl Default for SolverSettings {
             preconditioner: Preconditioner::default(),
             interface_scaling: InterfaceScaling::default(),
             adaptive_threshold: AdaptiveThreshold::Auto,
+            adaptive_edges: false,
             partitioner: Partitioner::default(),
             ordering: OrderingChoice::default(),
         }

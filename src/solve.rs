@@ -158,6 +158,7 @@ pub fn prepare_in(model: &Model, scene: &Scene, opts: &SolveOptions, placement: 
                     preconditioner: opts.preconditioner,
                     interface_scaling: opts.interface_scaling,
                     adaptive_threshold: opts.adaptive_threshold,
+                    adaptive_edges: opts.adaptive_edges,
                     ordering: opts.ordering,
                 },
                 placement,
@@ -518,8 +519,12 @@ fn solve_here(
                 ""
             };
             notes.push(format!(
-                "adaptive macro space (threshold {}): {} columns added on the faces, {} macro unknowns in all{why}",
-                st.adaptive_threshold, st.adaptive_columns, st.macro_unknowns
+                "adaptive macro space (threshold {}): {} columns added on the faces and {} on the edges, {} macro \
+                 unknowns in all{why}",
+                st.adaptive_threshold,
+                st.adaptive_columns - st.adaptive_edge_columns,
+                st.adaptive_edge_columns,
+                st.macro_unknowns
             ));
         }
         if let Some(t) = dd.seam().traffic_by_rank() {

@@ -992,6 +992,21 @@ fn scene_level_cg_matches_rust_api_bit_for_bit() {
         ok(nsdd_result_iterations(r, &mut it));
         assert_eq!(it, want.iterations);
         nsdd_result_destroy(r);
+        // With the edges' constraints too, bit for bit as in Rust, then off.
+        opts.adaptive_edges = true;
+        let want = solve(&big, &opts).unwrap();
+        ok(nsdd_options_set_adaptive_edges(o, 1));
+        let (r, u) = solve_displacements(s, o);
+        let wu: Vec<f64> = want.displacements.iter().flatten().copied().collect();
+        assert_eq!(bits(&u), bits(&wu));
+        nsdd_result_destroy(r);
+        expect_err(
+            nsdd_options_set_adaptive_edges(null_mut(), 1),
+            NsddStatus::NullPointer,
+            "options",
+        );
+        opts.adaptive_edges = false;
+        ok(nsdd_options_set_adaptive_edges(o, 0));
         for bad in [0.5, 1.0, -1.0, f64::NAN, f64::INFINITY] {
             expect_err(
                 nsdd_options_set_adaptive_threshold(o, bad),
@@ -1125,6 +1140,7 @@ fn dd_options(scene_file: &str) -> DdOptions {
         preconditioner: Default::default(),
         interface_scaling: Default::default(),
         adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
+        adaptive_edges: false,
         ordering: Default::default(),
     }
 }

@@ -957,6 +957,76 @@ fn adaptive_threshold_flag_and_setup_phases() {
         "{}",
         text(&out.stderr)
     );
+
+    // `--adaptive-edges` on a 3D contrast tower cut in 8 (edges shared by
+    // 3-4 subdomains): constraints on them too, fewer iterations, the same
+    // answer as direct; `--adaptive-edges false` gives the faces alone.
+    let cube = d.join("cube.toml");
+    ok(&nsdd(&[
+        "gen",
+        "tower",
+        "nx=6",
+        "ny=6",
+        "nz=6",
+        "unilateral=false",
+        "--out",
+        s(&cube),
+    ]));
+    let run = |edges: &str, name: &str| -> Value {
+        let res = d.join(name);
+        ok(&nsdd(&[
+            "solve",
+            s(&cube),
+            "--method",
+            "cg",
+            "--subdomains",
+            "8",
+            "--adaptive-edges",
+            edges,
+            "--out",
+            s(&res),
+        ]));
+        read_json(&res)
+    };
+    let (with, without) = (run("true", "edges.json"), run("false", "faces.json"));
+    let note = |r: &Value| -> String {
+        r["notes"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .filter_map(|n| n.as_str())
+            .find(|n| n.starts_with("adaptive macro space"))
+            .unwrap_or_else(|| panic!("{}", r["notes"]))
+            .to_string()
+    };
+    assert!(note(&without).contains(" and 0 on the edges"), "{}", note(&without));
+    assert!(!note(&with).contains(" and 0 on the edges"), "{}", note(&with));
+    let its = |r: &Value| r["iterations"].as_u64().unwrap();
+    assert!(
+        with["converged"] == true && 2 * its(&with) < its(&without),
+        "{} vs {}",
+        its(&with),
+        its(&without)
+    );
+    let res = d.join("cube-direct.json");
+    ok(&nsdd(&["solve", s(&cube), "--out", s(&res)]));
+    let direct = read_json(&res);
+    let flat = |v: &Value| -> Vec<f64> {
+        v.as_array()
+            .unwrap()
+            .iter()
+            .flat_map(|x| {
+                x.as_array().map_or_else(
+                    || vec![x.as_f64().unwrap()],
+                    |a| a.iter().map(|y| y.as_f64().unwrap()).collect(),
+                )
+            })
+            .collect()
+    };
+    let (a, b) = (flat(&with["tensions"]), flat(&direct["tensions"]));
+    let err = a.iter().zip(&b).map(|(x, y)| (x - y) * (x - y)).sum::<f64>().sqrt()
+        / b.iter().map(|y| y * y).sum::<f64>().sqrt();
+    assert!(err < 1e-7, "tensions {err:.2e} off direct");
 }
 
 #[test]

@@ -131,8 +131,8 @@ fn agree(scene_path: &Path, threaded: &SolveResult, method: Method, n: usize, np
     }
 }
 
-fn check_all(scene: &Scene, name: &str, cases: &[(Method, usize)], ranks: &[usize]) {
-    check_all_at(scene, name, cases, ranks, 1e-8);
+fn check_all(scene: &Scene, name: &str, cases: &[(Method, usize)], ranks: &[usize]) -> Vec<SolveResult> {
+    check_all_at(scene, name, cases, ranks, 1e-8)
 }
 
 fn check_all_at(scene: &Scene, name: &str, cases: &[(Method, usize)], ranks: &[usize], tol: f64) -> Vec<SolveResult> {
@@ -255,6 +255,24 @@ fn adaptive_macro_space_on_2_3_ranks() {
     });
     scene.solver.adaptive_threshold = nsdd::scene::AdaptiveThreshold::Value(5.0);
     check_all(&scene, "adaptive", &[(Method::Cg, 4)], &[2, 3]);
+    // A 3D contrast tower cut in 8: edges shared by 3-4 subdomains held on
+    // different ranks, whose sides every rank gathers.
+    let mut scene = nsdd::generate::tower(&nsdd::generate::TowerParams {
+        nx: 6,
+        ny: 6,
+        nz: 6,
+        unilateral: false,
+        ..Default::default()
+    });
+    scene.solver.adaptive_edges = true;
+    let r = check_all(&scene, "adaptive-edges", &[(Method::Cg, 8)], &[2, 3]);
+    assert!(
+        r.iter().all(|r| r
+            .notes
+            .iter()
+            .any(|n| n.contains("adaptive") && !n.contains(" and 0 on the edges"))),
+        "the tower's edges get constraints"
+    );
 }
 
 #[test]

@@ -64,6 +64,7 @@ fn extra_iterations_allocate_nothing() {
             preconditioner,
             interface_scaling: Default::default(),
             adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
+            adaptive_edges: false,
             ordering: Default::default(),
         };
         let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();
@@ -119,6 +120,7 @@ fn nonsmooth_cg_iterations_allocate_nothing() {
         preconditioner: Preconditioner::Dirichlet,
         interface_scaling: Default::default(),
         adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
+        adaptive_edges: false,
         ordering: Default::default(),
     };
     let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();

@@ -751,6 +751,7 @@ fn kernel_dims(scene: &Scene, subdomains: usize) -> Vec<usize> {
             preconditioner: Default::default(),
             interface_scaling: Default::default(),
             adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
+            adaptive_edges: false,
             ordering: Default::default(),
         },
     )
@@ -841,6 +842,7 @@ fn resolving_reuses_factorizations_bit_identically() {
         preconditioner: Default::default(),
         interface_scaling: Default::default(),
         adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
+        adaptive_edges: false,
         ordering: Default::default(),
     };
     let mut dd = DdSolver::new(&model, &dec, o.clone()).unwrap();
@@ -1344,6 +1346,7 @@ fn solve_options_given_in_rust_are_checked_like_the_scene() {
             preconditioner: Default::default(),
             interface_scaling: Default::default(),
             adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
+            adaptive_edges: false,
             partitioner: Default::default(),
             ordering: Default::default(),
         };
