@@ -584,7 +584,7 @@ enum NsddStatus nsdd_options_set_adaptive_threshold_auto(struct NsddOptions *opt
  * scene's `[solver] adaptive_edges`; they need the adaptive macro space
  * ([`nsdd_options_set_adaptive_threshold`]). Off by default: on 3D towers
  * whose bars are far stiffer than their cables they cut the iterations
- * 4-10×, but a large coarse problem can stall short of the tolerance.
+ * 2-11×, but a large coarse problem can stall short of the tolerance.
  *
  * # Safety
  * `options` must be a live options handle.

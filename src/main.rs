@@ -190,7 +190,7 @@ struct SolveArgs {
     /// Adaptive macro space of cg: eigenvalue threshold above which a face's jump modes become macro columns; 0: none; auto (the default): 5 where the elements' EA/L span 100x or more (stiff bars on soft cables), else none
     #[arg(long, value_name = "THETA|auto", value_parser = parse_adaptive, allow_hyphen_values = true)]
     adaptive_threshold: Option<AdaptiveThreshold>,
-    /// With the adaptive macro space, constraints on the edges too (dofs shared by three or more subdomains): 4-10x fewer cg iterations on 3D towers with stiff bars on soft cables; off by default (a large coarse problem can stall). `--adaptive-edges` alone means true
+    /// With the adaptive macro space, constraints on the edges too (dofs shared by three or more subdomains): 2-11x fewer cg iterations on 3D towers with stiff bars on soft cables; off by default (a large coarse problem can stall). `--adaptive-edges` alone means true
     #[arg(long, value_name = "true|false", num_args = 0..=1, default_missing_value = "true")]
     adaptive_edges: Option<bool>,
     /// Write the result JSON here (also when not converged: its `status` says why; not after an error or divergence)

@@ -318,7 +318,7 @@ pub struct SolverSettings {
     /// dofs shared by three or more subdomains), from the same eigenproblems
     /// on every pair of an edge's subdomains (`crate::adaptive`). Off by
     /// default (not written then): on the 3D towers whose bars are 1e4 ×
-    /// their cables it cuts `cg`'s iterations 4-10×, but a large coarse
+    /// their cables it cuts `cg`'s iterations 2-11×, but a large coarse
     /// problem can then stall short of the tolerance (docs/design.md §4).
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub adaptive_edges: bool,
