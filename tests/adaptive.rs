@@ -48,18 +48,33 @@ fn direct(scene: &Scene) -> SolveResult {
     solve(scene, &SolveOptions::default()).unwrap()
 }
 
-fn note_columns(r: &SolveResult) -> usize {
-    let note = r
-        .notes
+/// The result's note on the adaptive macro space.
+fn adaptive_note(r: &SolveResult) -> &str {
+    r.notes
         .iter()
         .find(|n| n.starts_with("adaptive macro space"))
-        .expect("the result notes the adaptive macro space");
-    note.split(": ")
+        .expect("the result notes the adaptive macro space")
+}
+
+/// The number that follows `after` in the adaptive note.
+fn note_number(r: &SolveResult, after: &str) -> usize {
+    adaptive_note(r)
+        .split(after)
         .nth(1)
         .and_then(|t| t.split(' ').next())
         .unwrap()
         .parse()
         .unwrap()
+}
+
+/// Columns the adaptive macro space added on the faces, from the note.
+fn note_columns(r: &SolveResult) -> usize {
+    note_number(r, ": ")
+}
+
+/// Columns the adaptive macro space added on the edges, from the note.
+fn note_edge_columns(r: &SolveResult) -> usize {
+    note_number(r, " and ")
 }
 
 /// The README's tower (bars 1e4 × the cables, 4 subdomains): 60 iterations
@@ -85,21 +100,6 @@ fn adaptive_macro_space_converges_on_the_readme_tower() {
         let (eu, et) = errors(x, &d);
         assert!(eu < 1e-8 && et < 1e-7, "errors {eu:.2e} {et:.2e}");
     }
-}
-
-/// Columns the adaptive macro space added on the edges, from the note.
-fn note_edge_columns(r: &SolveResult) -> usize {
-    let note = r
-        .notes
-        .iter()
-        .find(|n| n.starts_with("adaptive macro space"))
-        .expect("the result notes the adaptive macro space");
-    note.split(" and ")
-        .nth(1)
-        .and_then(|t| t.split(' ').next())
-        .unwrap()
-        .parse()
-        .unwrap()
 }
 
 /// A 3D contrast tower with cross points (6³ cells, bars 1e4 × the cables,
