@@ -450,7 +450,6 @@ pub fn principal_block(ip: &mut InteriorProblem, op: &SubdomainOperator, rows: &
 /// they cannot repeat each other at cross points (on the edges they do,
 /// and cg broke down when they were allowed there).
 pub fn enrich(p: Mat<f64>, face: &[usize], lo: &FaceSide, hi: &FaceSide, theta: f64) -> (Mat<f64>, usize) {
-    let n = p.nrows();
     let pf = Mat::from_fn(face.len(), p.ncols(), |i, j| p[(face[i], j)]);
     // A failed eigensolve leaves the face without adaptive columns.
     let extra = match face_modes(lo, hi, &pf, theta) {
@@ -461,17 +460,8 @@ pub fn enrich(p: Mat<f64>, face: &[usize], lo: &FaceSide, hi: &FaceSide, theta: 
     // basis drops near-repeats, which add nothing but conditioning trouble
     // to the coarse problem.
     let extra = orthonormal_columns(&extra, EXTRA_RANK_RTOL);
-    let m = p.ncols();
-    let mut all = Mat::<f64>::zeros(n, m + extra.ncols());
-    all.as_mut().submatrix_mut(0, 0, n, m).copy_from(p.as_ref());
-    for (k, &i) in face.iter().enumerate() {
-        for j in 0..extra.ncols() {
-            all[(i, m + j)] = extra[(k, j)];
-        }
-    }
-    let all = orthonormal_columns(&all, MACRO_RANK_RTOL);
-    let added = all.ncols().saturating_sub(m);
-    (all, added)
+    let entries: Vec<u32> = face.iter().map(|&i| i as u32).collect();
+    with_columns(p, &[(&entries, &extra)])
 }
 
 /// The constraints (`face × k`, orthogonal to the columns of `p`, not
