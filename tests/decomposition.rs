@@ -327,25 +327,35 @@ fn lcg(seed: &mut u64) -> f64 {
 /// The sparse coarse solve against a dense solve of the same saddle system,
 /// with `L` singular on directions that only `G` restrains (`rank L + na =
 /// nf`: the augmentation case) and with extra null directions that act on
-/// nothing (`rank L + na < nf`: the redundant cross-point case).
+/// nothing (`rank L + na < nf`: the redundant cross-point case). Both
+/// routes of the inner solve: with `L_γ⁻¹ G` kept from the set-up (these
+/// small problems keep it) and with the second solve by the factor.
 #[test]
 fn coarse_solve_matches_dense_saddle_with_singular_macro_block() {
     use nsdd::coarse::CoarseProblem;
     // With `scale` ≠ 1 the saddle system is badly balanced (condition ~1e10
     // here), so only the residual is checked there.
-    for (nf, rank, na, scale) in [
+    for ((nf, rank, na, scale), forget) in [
         (30, 24, 6, 1.0),
         (30, 20, 6, 1.0),
         (12, 12, 0, 1.0),
         (30, 24, 6, 1e6),
         (30, 20, 6, 1e-6),
-    ] {
+    ]
+    .into_iter()
+    .flat_map(|case| [(case, false), (case, true)])
+    {
         let mut seed = 7 + rank as u64;
         let b = Mat::<f64>::from_fn(nf, rank, |_, _| lcg(&mut seed));
         let l = (&b * b.transpose()) * scale;
         let g = Mat::<f64>::from_fn(nf, na, |_, _| lcg(&mut seed));
         let owner = vec![0; na];
         let mut cp = CoarseProblem::from_dense(&l, &g, &owner).unwrap();
+        assert_eq!(cp.kernel_solves_kept(), na > 0);
+        if forget {
+            cp.forget_kernel_solves();
+            assert!(!cp.kernel_solves_kept());
+        }
         // A consistent right-hand side from a known (f0, α0).
         let f0: Vec<f64> = (0..nf).map(|_| lcg(&mut seed)).collect();
         let a0: Vec<f64> = (0..na).map(|_| lcg(&mut seed)).collect();
