@@ -888,9 +888,8 @@ fn gt_mul_into(ptr: &[usize], row: &[usize], val: &[f64], x: &[f64], y: &mut [f6
     }
 }
 
-/// `y = A x` for a dense column-major matrix, written as column axpys so it
-/// vectorises.
-/// Most values of `L_γ⁻¹ G` a coarse problem keeps (128 MB).
+/// Most values of `L_γ⁻¹ G` a coarse problem keeps (128 MB; twice that
+/// for a moment at set-up, while the batches become the matrix).
 const MAX_KERNEL_SOLVES: usize = 1 << 24;
 
 /// Whether a coarse problem with `nf` macro and `na` kernel unknowns keeps
@@ -905,6 +904,8 @@ fn keeps_kernel_solves(nf: usize, na: usize, nnz_factor: usize) -> bool {
     na > 0 && nf.saturating_mul(na) <= MAX_KERNEL_SOLVES && nf * na <= 2 * nnz_factor
 }
 
+/// `y = A x` for a dense column-major matrix, written as column axpys so it
+/// vectorises.
 fn gemv(a: &Mat<f64>, x: &[f64], y: &mut [f64]) {
     y.iter_mut().for_each(|v| *v = 0.0);
     for (j, &xj) in x.iter().enumerate() {
