@@ -38,12 +38,19 @@ pub struct InterfaceOperator<C: Communicator = Threads> {
     entry_inv_mult: Vec<Vec<f64>>,
 }
 
+/// Column `k` of a column-major `faer` matrix as a slice (an owned `Mat`
+/// stores each column contiguously).
+#[inline]
+fn column(a: &faer::Mat<f64>, k: usize) -> &[f64] {
+    a.col(k).try_as_col_major().expect("contiguous column").as_slice()
+}
+
 /// `out[k] = a[:, k] · x` for every column of `a` (column-major, contiguous
 /// columns).
 #[inline]
 fn columns_dot(a: &faer::Mat<f64>, x: &[f64], out: &mut [f64]) {
     for (k, o) in out.iter_mut().enumerate() {
-        *o = kernels::dot(a.col(k).try_as_col_major().expect("contiguous column").as_slice(), x);
+        *o = kernels::dot(column(a, k), x);
     }
 }
 
@@ -119,8 +126,7 @@ fn macro_jump_rhs(subs: &mut [SubState], ifaces: &[IfaceState]) {
             let range = it.macro_off..it.macro_off + it.p.ncols();
             for (k, &c) in s.macro_cols.iter().enumerate() {
                 if range.contains(&c) {
-                    let col = it.p.col(c - it.macro_off);
-                    s.zt_r[k] = kernels::dot(col.try_as_col_major().expect("contiguous column").as_slice(), &it.jump);
+                    s.zt_r[k] = kernels::dot(column(&it.p, c - it.macro_off), &it.jump);
                 }
             }
         }
@@ -130,17 +136,12 @@ fn macro_jump_rhs(subs: &mut [SubState], ifaces: &[IfaceState]) {
 /// `x ← (I − P Pᵀ) x` for an interface block `P` with orthonormal columns.
 fn remove_macro_part(x: &mut [f64], p: &faer::Mat<f64>) {
     for q in 0..p.ncols() {
-        let col = p.col(q);
-        let c = kernels::dot(col.try_as_col_major().expect("contiguous column").as_slice(), x);
-        for (v, a) in x.iter_mut().zip(col.iter()) {
+        let col = column(p, q);
+        let c = kernels::dot(col, x);
+        for (v, a) in x.iter_mut().zip(col) {
             *v -= c * a;
         }
     }
-}
-
-#[inline]
-fn dot(x: &[f64], y: &[f64]) -> f64 {
-    kernels::dot(x, y)
 }
 
 impl<C: Communicator> InterfaceOperator<C> {
@@ -241,7 +242,7 @@ impl<C: Communicator> InterfaceOperator<C> {
                 }
                 let r = s.op.kernel();
                 for (q, rt) in s.rt_r.iter_mut().enumerate() {
-                    *rt = kernels::dot(r.col(q).try_as_col_major().expect("contiguous column").as_slice(), &s.r);
+                    *rt = kernels::dot(column(r, q), &s.r);
                 }
             });
         }
@@ -492,12 +493,13 @@ impl<C: Communicator> InterfaceOperator<C> {
 
     /// `Σ_Γ ⟨x_Γ, y_Γ⟩` over the interfaces.
     pub fn dot(&self, x: &[Vec<f64>], y: &[Vec<f64>]) -> f64 {
-        self.comm.sum_interfaces(|i| [dot(&x[i], &y[i])])[0]
+        self.comm.sum_interfaces(|i| [kernels::dot(&x[i], &y[i])])[0]
     }
 
     /// `Σ_Γ ⟨x_Γ, jump_Γ⟩` over the interfaces.
     pub fn dot_jump(&self, x: &[Vec<f64>]) -> f64 {
-        self.comm.sum_interfaces(|i| [dot(&x[i], &self.ifaces[i].jump)])[0]
+        self.comm
+            .sum_interfaces(|i| [kernels::dot(&x[i], &self.ifaces[i].jump)])[0]
     }
 
     /// `(Σ_Γ ‖P_Γᵀ x_Γ‖², Σ_Γ ‖x_Γ‖²)`: the part of `x` in the macro space
@@ -508,10 +510,7 @@ impl<C: Communicator> InterfaceOperator<C> {
             let p = &self.ifaces[i].p;
             let mut m = 0.0;
             for q in 0..p.ncols() {
-                let c = kernels::dot(
-                    p.col(q).try_as_col_major().expect("contiguous column").as_slice(),
-                    &x[i],
-                );
+                let c = kernels::dot(column(p, q), &x[i]);
                 m += c * c;
             }
             [m, kernels::norm2(&x[i])]
