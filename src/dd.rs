@@ -405,7 +405,8 @@ pub(crate) struct IfaceState {
     /// every jump of an iterate (empty: none; see
     /// [`DdSolver::refine_equilibrium`]).
     pub(crate) base_jump: Vec<f64>,
-    /// `P_Γ` (`entries × m_Γ`), empty without coarse space.
+    /// `P_Γ` (`entries × m_Γ`), empty without coarse space; without the
+    /// directions that repeat others around cross points ([`crate::redundant`]).
     pub(crate) p: Mat<f64>,
     pub(crate) macro_off: usize,
     pub(crate) jump_norm2: f64,
@@ -430,6 +431,9 @@ pub struct DdStats {
     /// Of [`Self::adaptive_columns`], those on edges (dofs shared by three
     /// or more subdomains).
     pub adaptive_edge_columns: usize,
+    /// Macro columns dropped because combinations through them leave (almost)
+    /// no force on any subdomain ([`crate::coarse::REDUNDANT_PIVOT`]).
+    pub redundant_macro_columns: usize,
     /// The threshold of the adaptive macro space used (0: off; `"auto"`
     /// resolved).
     pub adaptive_threshold: f64,
@@ -531,6 +535,66 @@ fn largest_motion(modes: &[(&Mat<f64>, &[usize], &[f64])]) -> Option<usize> {
         }
     }
     best.filter(|&(v, _)| v > 0.0).map(|(_, d)| d)
+}
+
+/// Lower-triangle entries `(i, j, v)`, `i > j`, of the macro forces' Gram
+/// matrix `WᵀW = Σ_E W_EᵀW_E` off its diagonal, from the subdomains in
+/// `owned`, flattened for a gather. `W_E` puts `±P_Γ` on the subdomain's
+/// dofs of each interface `Γ`; the bases are orthonormal, so the diagonal
+/// blocks are the identity on either side (`2 I` in all, added by the
+/// caller) and only dofs on two or more of a subdomain's interfaces (cross
+/// points) couple columns.
+fn macro_gram(dec: &Decomposition, ifaces: &[IfaceState], owned: std::ops::Range<usize>) -> Vec<f64> {
+    let per_subdomain: Vec<Vec<f64>> = owned
+        .into_par_iter()
+        .map(|s| {
+            // (local dof, interface, entry, sign) of every entry of s.
+            let mut at: Vec<(u32, usize, usize, f64)> = Vec::new();
+            for &i in &dec.subdomains[s].interfaces {
+                let it = &ifaces[i];
+                let (idx, sign) = if it.lo == s {
+                    (&it.lo_idx, 1.0)
+                } else {
+                    (&it.hi_idx, -1.0)
+                };
+                at.extend(idx.iter().enumerate().map(|(e, &l)| (l, i, e, sign)));
+            }
+            at.sort_unstable_by_key(|&(l, i, _, _)| (l, i));
+            let mut block: std::collections::BTreeMap<(usize, usize), Mat<f64>> = Default::default();
+            for group in at.chunk_by(|a, b| a.0 == b.0).filter(|g| g.len() > 1) {
+                for &(_, a, ea, sa) in group {
+                    for &(_, b, eb, sb) in group {
+                        if ifaces[a].macro_off <= ifaces[b].macro_off || a == b {
+                            continue;
+                        }
+                        let (pa, pb) = (&ifaces[a].p, &ifaces[b].p);
+                        let m = block
+                            .entry((a, b))
+                            .or_insert_with(|| Mat::zeros(pa.ncols(), pb.ncols()));
+                        for r in 0..pb.ncols() {
+                            let v = sa * sb * pb[(eb, r)];
+                            for q in 0..pa.ncols() {
+                                m[(q, r)] += pa[(ea, q)] * v;
+                            }
+                        }
+                    }
+                }
+            }
+            let mut out = Vec::new();
+            for ((a, b), m) in block {
+                let (oa, ob) = (ifaces[a].macro_off, ifaces[b].macro_off);
+                for r in 0..m.ncols() {
+                    for q in 0..m.nrows() {
+                        if m[(q, r)] != 0.0 {
+                            out.extend([(oa + q) as f64, (ob + r) as f64, m[(q, r)]]);
+                        }
+                    }
+                }
+            }
+            out
+        })
+        .collect();
+    per_subdomain.concat()
 }
 
 /// [`CoarseContribution`]s as one vector of numbers, to gather them from
@@ -772,6 +836,7 @@ impl DdSolver {
         let mut n_macro = 0;
         let mut adaptive_columns = 0;
         let mut adaptive_edge_columns = 0;
+        let mut redundant_macro_columns = 0;
         // Already resolved from the model where there is one; off for an
         // algebraic problem, which has no element stiffnesses to judge by.
         let adaptive_threshold = opts.adaptive_threshold.resolve(std::iter::empty());
@@ -925,6 +990,60 @@ impl DdSolver {
                 }
             }
             n_macro = off;
+            // Columns that repeat others around cross points
+            // (`crate::redundant`) leave every basis before the coarse
+            // problem is built from them; every process finds the same
+            // ones from the same gathered bases' cross directions and Gram
+            // matrix.
+            let gram: Vec<(usize, usize, f64)> = seam
+                .gather(&macro_gram(dec, &ifaces, owned.clone()))
+                .chunks_exact(3)
+                .map(|t| (t[0] as usize, t[1] as usize, t[2]))
+                .collect();
+            let mut cross_dirs: Vec<Mat<f64>> = width.iter().map(|&w| Mat::zeros(w, 0)).collect();
+            {
+                let mut packed = Vec::new();
+                for (i, st) in ifaces.iter().enumerate() {
+                    if local(st.lo).is_none() || st.p.ncols() == 0 {
+                        continue;
+                    }
+                    let mult = &dec.subdomains[st.lo].multiplicity;
+                    let cross: Vec<usize> = (0..st.lo_idx.len())
+                        .filter(|&e| mult[st.lo_idx[e] as usize] > 2)
+                        .collect();
+                    let sd = crate::redundant::cross_directions(&st.p, &cross);
+                    if sd.ncols() > 0 {
+                        packed.extend([i as f64, sd.nrows() as f64, sd.ncols() as f64]);
+                        for j in 0..sd.ncols() {
+                            packed.extend(sd.col(j).iter());
+                        }
+                    }
+                }
+                let all = seam.gather(&packed);
+                let mut k = 0;
+                while k < all.len() {
+                    let (i, m, c) = (all[k] as usize, all[k + 1] as usize, all[k + 2] as usize);
+                    k += 3;
+                    cross_dirs[i] = Mat::from_fn(m, c, |a, b| all[k + b * m + a]);
+                    k += m * c;
+                }
+            }
+            let offsets: Vec<usize> = ifaces.iter().map(|st| st.macro_off).collect();
+            let dropped = crate::redundant::redundant_directions(&offsets, &cross_dirs, &gram);
+            drop((gram, cross_dirs));
+            let n_dropped: usize = dropped.iter().map(|d| d.ncols()).sum();
+            if n_dropped > 0 {
+                redundant_macro_columns = n_dropped;
+                let mut off = 0;
+                for ((st, d), &w) in ifaces.iter_mut().zip(&dropped).zip(&width) {
+                    if d.ncols() > 0 && st.p.ncols() == w {
+                        st.p = crate::redundant::without_directions(&st.p, d);
+                    }
+                    st.macro_off = off;
+                    off += w - d.ncols();
+                }
+                n_macro = off;
+            }
         }
 
         // Per-subdomain state, for the subdomains held here.
@@ -1152,6 +1271,7 @@ impl DdSolver {
             macro_unknowns: n_macro,
             adaptive_columns,
             adaptive_edge_columns,
+            redundant_macro_columns,
             adaptive_threshold,
             adaptive_s,
             kernel_unknowns: alpha_off,

@@ -26,6 +26,7 @@ pub mod operator;
 pub mod ordering;
 pub mod outcome;
 pub mod partition;
+pub mod redundant;
 pub mod result;
 pub mod scaling;
 pub mod scene;

@@ -527,6 +527,14 @@ fn solve_here(
                 st.macro_unknowns
             ));
         }
+        if st.redundant_macro_columns > 0 {
+            notes.push(format!(
+                "macro space: dropped {} of {} columns that repeat others at cross points (combinations that \
+                 leave no force on any subdomain)",
+                st.redundant_macro_columns,
+                st.macro_unknowns + st.redundant_macro_columns
+            ));
+        }
         if let Some(t) = dd.seam().traffic_by_rank() {
             let col = |k: usize| t.iter().map(|r| r[k].to_string()).collect::<Vec<_>>().join(", ");
             notes.push(format!(

@@ -150,6 +150,46 @@ fn adaptive_macro_space_on_a_3d_contrast_tower() {
     }
 }
 
+/// The 4³ contrast tower cut in 8 with the edges' constraints: the bases
+/// around its cross points overlap so much that combinations of macro
+/// columns leave no force on any subdomain, one of them almost none
+/// (`‖W z‖² = 1.2e-12`). Left in, that one made the coarse solution's
+/// component along it noise that moved the subdomains, and CG took 345
+/// iterations (250 in corrections) where faces alone take 27; with the
+/// redundant columns dropped (`nsdd::redundant`), 13. The note counts them.
+#[test]
+fn redundant_macro_columns_are_dropped_on_a_small_tower_with_edges() {
+    let scene = tower(&TowerParams {
+        nx: 4,
+        ny: 4,
+        nz: 4,
+        unilateral: false,
+        ..Default::default()
+    });
+    let d = direct(&scene);
+    let edges = cg_edges(&scene, 8, AdaptiveThreshold::Value(5.0), true);
+    assert!(edges.converged, "{:?}", edges.status);
+    assert!(
+        edges.iterations <= 20,
+        "with the edges: {} iterations",
+        edges.iterations
+    );
+    let (eu, et) = errors(&edges, &d);
+    assert!(eu < 1e-8 && et < 1e-7, "errors {eu:.2e} {et:.2e}");
+    let note = edges
+        .notes
+        .iter()
+        .find(|n| n.starts_with("macro space: dropped "))
+        .expect("the result notes the dropped columns");
+    let dropped: usize = note["macro space: dropped ".len()..]
+        .split(' ')
+        .next()
+        .unwrap()
+        .parse()
+        .unwrap();
+    assert!(dropped > 0, "{note}");
+}
+
 /// A uniform tower (cables as stiff as the bars): few columns, no more
 /// iterations, the same answer.
 #[test]

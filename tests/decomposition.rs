@@ -166,7 +166,7 @@ fn dd_operator_mut(dd: &mut DdSolver, s: usize) -> &mut nsdd::subdomain::Subdoma
 
 #[test]
 fn macro_basis_is_orthonormal() {
-    for (n, parts) in [(4, 4), (8, 16)] {
+    for (n, parts) in [(4, 4), (8, 16), (24, 16)] {
         let model = grid_model(n);
         let dec = Decomposition::new(&model, Partition::bisection(&model, parts).unwrap());
         let dd = multilevel(&model, &dec);
@@ -179,9 +179,50 @@ fn macro_basis_is_orthonormal() {
                 }
             }
             assert!(p.ncols() <= p.nrows());
-            assert!(p.ncols() >= 1);
+        }
+        assert_macro_forces_independent(&dec, &dd);
+    }
+}
+
+/// The macro forces `W = Σ_E W_E` (`±P_Γ` on each subdomain's dofs of its
+/// interfaces) have no combination that leaves (almost) no force on every
+/// subdomain: the smallest eigenvalue of `WᵀW` is clear of zero (the
+/// redundant columns around cross points were dropped, `nsdd::redundant`).
+fn assert_macro_forces_independent(dec: &Decomposition, dd: &DdSolver) {
+    let blocks = dd.macro_blocks();
+    let mut off = Vec::with_capacity(blocks.len());
+    let mut n = 0;
+    for p in &blocks {
+        off.push(n);
+        n += p.ncols();
+    }
+    let mut gram = Mat::<f64>::zeros(n, n);
+    for s in 0..dec.subdomains.len() {
+        let mut w: std::collections::BTreeMap<u32, Vec<(usize, f64)>> = Default::default();
+        for (i, it) in dec.interfaces.iter().enumerate() {
+            let (local, sign) = if it.lo == s {
+                (&dec.entry_lo_local, 1.0)
+            } else if it.hi == s {
+                (&dec.entry_hi_local, -1.0)
+            } else {
+                continue;
+            };
+            for e in 0..it.len() {
+                let row = w.entry(local[it.start + e]).or_default();
+                row.extend((0..blocks[i].ncols()).map(|q| (off[i] + q, sign * blocks[i][(e, q)])));
+            }
+        }
+        for row in w.values() {
+            for &(a, va) in row {
+                for &(b, vb) in row {
+                    gram[(a, b)] += va * vb;
+                }
+            }
         }
     }
+    let evd = gram.self_adjoint_eigen(faer::Side::Lower).unwrap();
+    let smallest = evd.S().column_vector().iter().fold(f64::INFINITY, |m, &v| m.min(v));
+    assert!(smallest > 1e-8, "WᵀW has an eigenvalue {smallest:e}");
 }
 
 #[test]
