@@ -432,7 +432,7 @@ pub struct DdStats {
     /// or more subdomains).
     pub adaptive_edge_columns: usize,
     /// Macro columns dropped because combinations through them leave (almost)
-    /// no force on any subdomain ([`crate::coarse::REDUNDANT_PIVOT`]).
+    /// no force on any subdomain ([`crate::redundant`]).
     pub redundant_macro_columns: usize,
     /// The threshold of the adaptive macro space used (0: off; `"auto"`
     /// resolved).
@@ -595,6 +595,31 @@ fn macro_gram(dec: &Decomposition, ifaces: &[IfaceState], owned: std::ops::Range
         })
         .collect();
     per_subdomain.concat()
+}
+
+/// The cross-point directions ([`crate::redundant::cross_directions`]) of
+/// the bases of the interfaces whose `lo` subdomain is `held` here,
+/// flattened for a gather: per interface with any, `i, p, s`, then the
+/// `p × s` directions column by column.
+fn packed_cross_directions(dec: &Decomposition, ifaces: &[IfaceState], held: impl Fn(usize) -> bool) -> Vec<f64> {
+    let mut packed = Vec::new();
+    for (i, st) in ifaces.iter().enumerate() {
+        if !held(st.lo) || st.p.ncols() == 0 {
+            continue;
+        }
+        let mult = &dec.subdomains[st.lo].multiplicity;
+        let cross: Vec<usize> = (0..st.lo_idx.len())
+            .filter(|&e| mult[st.lo_idx[e] as usize] > 2)
+            .collect();
+        let sd = crate::redundant::cross_directions(&st.p, &cross);
+        if sd.ncols() > 0 {
+            packed.extend([i as f64, sd.nrows() as f64, sd.ncols() as f64]);
+            for j in 0..sd.ncols() {
+                packed.extend(sd.col(j).iter());
+            }
+        }
+    }
+    packed
 }
 
 /// [`CoarseContribution`]s as one vector of numbers, to gather them from
@@ -1001,32 +1026,13 @@ impl DdSolver {
                 .map(|t| (t[0] as usize, t[1] as usize, t[2]))
                 .collect();
             let mut cross_dirs: Vec<Mat<f64>> = width.iter().map(|&w| Mat::zeros(w, 0)).collect();
-            {
-                let mut packed = Vec::new();
-                for (i, st) in ifaces.iter().enumerate() {
-                    if local(st.lo).is_none() || st.p.ncols() == 0 {
-                        continue;
-                    }
-                    let mult = &dec.subdomains[st.lo].multiplicity;
-                    let cross: Vec<usize> = (0..st.lo_idx.len())
-                        .filter(|&e| mult[st.lo_idx[e] as usize] > 2)
-                        .collect();
-                    let sd = crate::redundant::cross_directions(&st.p, &cross);
-                    if sd.ncols() > 0 {
-                        packed.extend([i as f64, sd.nrows() as f64, sd.ncols() as f64]);
-                        for j in 0..sd.ncols() {
-                            packed.extend(sd.col(j).iter());
-                        }
-                    }
-                }
-                let all = seam.gather(&packed);
-                let mut k = 0;
-                while k < all.len() {
-                    let (i, m, c) = (all[k] as usize, all[k + 1] as usize, all[k + 2] as usize);
-                    k += 3;
-                    cross_dirs[i] = Mat::from_fn(m, c, |a, b| all[k + b * m + a]);
-                    k += m * c;
-                }
+            let all = seam.gather(&packed_cross_directions(dec, &ifaces, |s| local(s).is_some()));
+            let mut k = 0;
+            while k < all.len() {
+                let (i, m, c) = (all[k] as usize, all[k + 1] as usize, all[k + 2] as usize);
+                k += 3;
+                cross_dirs[i] = Mat::from_fn(m, c, |a, b| all[k + b * m + a]);
+                k += m * c;
             }
             let offsets: Vec<usize> = ifaces.iter().map(|st| st.macro_off).collect();
             let dropped = crate::redundant::redundant_directions(&offsets, &cross_dirs, &gram);

@@ -80,10 +80,11 @@ pub fn cross_directions(p: &Mat<f64>, cross: &[usize]) -> Mat<f64> {
 /// pivots above this.
 const CANDIDATE_PIVOT: f64 = 1e-4;
 
-/// Shift of the rest `M_EE` for its factor: a null combination the scan
-/// missed (its pivot showed elsewhere in faer's supernodal elimination)
-/// would leave `M_EE` singular; shifted, it enters the kernel columns
-/// amplified `1/μ`, and the Rayleigh–Ritz step finds it there.
+/// Shift of the rest `M_EE` for its factor: a null combination the scan's
+/// candidates do not cover leaves `M_EE` singular (on the 30³ tower with 64
+/// subdomains and the edges' constraints its factor met a zero pivot, in
+/// the scan's own order); shifted, the combination enters the kernel
+/// columns amplified `1/μ`, and the Rayleigh–Ritz step finds it there.
 const KERNEL_SHIFT: f64 = 1e-10;
 
 /// Largest `k² n` (a group's kernel columns squared times its directions)
@@ -99,12 +100,12 @@ const MAX_QR_WORK: f64 = 2e10;
 ///
 /// The restricted Gram matrix `M = Sᵀ WᵀW S` is sparse (directions couple
 /// at shared cross dofs only). The unknowns of its small `LDLᵀ` pivots
-/// ([`CANDIDATE_PIVOT`]) are fixed, the rest factored, and the kernel
+/// (`CANDIDATE_PIVOT`) are fixed, the rest factored, and the kernel
 /// columns `e_f − M_EE⁻¹ M_Ef` span the (near-)null space; grouped by
 /// shared support, a Rayleigh–Ritz step on each group's columns keeps
 /// the combinations below [`NULL_EIGENVALUE`], and a column-pivoted QR of
 /// those picks the directions they lean on most. A group whose QR would
-/// cost more than [`MAX_QR_WORK`] keeps its directions.
+/// cost more than `MAX_QR_WORK` keeps its directions.
 pub fn redundant_directions(offset: &[usize], s: &[Mat<f64>], gram: &[(usize, usize, f64)]) -> Vec<Mat<f64>> {
     let ni = s.len();
     let none = || s.iter().map(|si| Mat::zeros(si.nrows(), 0)).collect::<Vec<_>>();
