@@ -13,7 +13,7 @@
 //! moves the subdomains. On the 4³ contrast tower cut in 8 with the edges'
 //! constraints (one combination with `‖W z‖² = 1.2e-12`) two evaluations
 //! of the same CG operator differed by up to 60 % of the jump, and CG took
-//! 345 iterations where it now takes 13.
+//! 345 iterations where it now takes 14.
 //!
 //! A combination with `W z ≈ 0` must vanish on every face dof (a dof of
 //! two subdomains has one interface only), so it lives in the directions

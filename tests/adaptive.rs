@@ -156,7 +156,7 @@ fn adaptive_macro_space_on_a_3d_contrast_tower() {
 /// (`‖W z‖² = 1.2e-12`). Left in, that one made the coarse solution's
 /// component along it noise that moved the subdomains, and CG took 345
 /// iterations (250 in corrections) where faces alone take 27; with the
-/// redundant columns dropped (`nsdd::redundant`), 13. The note counts them.
+/// redundant columns dropped (`nsdd::redundant`), 14. The note counts them.
 #[test]
 fn redundant_macro_columns_are_dropped_on_a_small_tower_with_edges() {
     let scene = tower(&TowerParams {
