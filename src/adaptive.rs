@@ -270,6 +270,16 @@ pub(crate) fn edge_constraints(edges: &Edges, packed: &[f64], theta: f64) -> Vec
         .collect()
 }
 
+/// The root of `a` in a disjoint-set forest (`root[x] == x` at a root),
+/// halving the path on the way.
+pub(crate) fn find_root(root: &mut [usize], mut a: usize) -> usize {
+    while root[a] != a {
+        root[a] = root[root[a]];
+        a = root[a];
+    }
+    a
+}
+
 /// The interfaces that carry each edge's constraints ([`edge_constraints`]):
 /// a spanning tree of the pairs of its subdomains, as `(interface, its
 /// entries of the edge's dofs in the edge's order)` per edge; empty for an
@@ -296,19 +306,12 @@ pub(crate) fn edge_trees(edges: &Edges, ends: &[(usize, usize)], has_face: &[boo
             cand.sort_by_key(|&(i, _)| (has_face[i], ends[i]));
             let subs = &edge.subdomains;
             let mut root: Vec<usize> = (0..subs.len()).collect();
-            fn find(root: &mut [usize], mut a: usize) -> usize {
-                while root[a] != a {
-                    root[a] = root[root[a]];
-                    a = root[a];
-                }
-                a
-            }
             let mut tree = Vec::with_capacity(subs.len().saturating_sub(1));
             for (i, entries) in cand {
                 let (Ok(a), Ok(b)) = (subs.binary_search(&ends[i].0), subs.binary_search(&ends[i].1)) else {
                     continue;
                 };
-                let (ra, rb) = (find(&mut root, a), find(&mut root, b));
+                let (ra, rb) = (find_root(&mut root, a), find_root(&mut root, b));
                 if ra != rb {
                     root[ra] = rb;
                     tree.push((i, entries.clone()));

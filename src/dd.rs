@@ -1020,11 +1020,6 @@ impl DdSolver {
             // problem is built from them; every process finds the same
             // ones from the same gathered bases' cross directions and Gram
             // matrix.
-            let gram: Vec<(usize, usize, f64)> = seam
-                .gather(&macro_gram(dec, &ifaces, owned.clone()))
-                .chunks_exact(3)
-                .map(|t| (t[0] as usize, t[1] as usize, t[2]))
-                .collect();
             let mut cross_dirs: Vec<Mat<f64>> = width.iter().map(|&w| Mat::zeros(w, 0)).collect();
             let all = seam.gather(&packed_cross_directions(dec, &ifaces, |s| local(s).is_some()));
             let mut k = 0;
@@ -1035,6 +1030,16 @@ impl DdSolver {
                 k += m * c;
             }
             let offsets: Vec<usize> = ifaces.iter().map(|st| st.macro_off).collect();
+            // Without a cross-point direction anywhere nothing can repeat:
+            // no Gram matrix to gather (every process sees the same gather).
+            let gram: Vec<(usize, usize, f64)> = if cross_dirs.iter().any(|d| d.ncols() > 0) {
+                seam.gather(&macro_gram(dec, &ifaces, owned.clone()))
+                    .chunks_exact(3)
+                    .map(|t| (t[0] as usize, t[1] as usize, t[2]))
+                    .collect()
+            } else {
+                Vec::new()
+            };
             let dropped = crate::redundant::redundant_directions(&offsets, &cross_dirs, &gram);
             drop((gram, cross_dirs));
             let n_dropped: usize = dropped.iter().map(|d| d.ncols()).sum();

@@ -37,6 +37,7 @@
 //! the edges' constraints, on a floor of the preconditioned jump: 1e-5
 //! and 8e-5 of the loads.)
 
+use crate::adaptive::find_root;
 use faer::Mat;
 
 /// Squared size on its face (of a unit direction of an interface basis)
@@ -161,10 +162,6 @@ pub fn redundant_directions(offset: &[usize], s: &[Mat<f64>], gram: &[(usize, us
     let Ok(scan) = crate::factor::scan_pivots(&lower, Some(&order), CANDIDATE_PIVOT) else {
         return none();
     };
-    let k0 = scan.negligible.len() + scan.negative.len();
-    if k0 == 0 {
-        return none();
-    }
     // Kernel columns: fix the scan's unknowns `F`, factor the rest
     // (`M_EE`), and `z_f = e_f − M_EE⁻¹ M_Ef` for each `f` in `F` spans the
     // null space (each is local: the combination through `f`).
@@ -173,6 +170,9 @@ pub fn redundant_directions(offset: &[usize], s: &[Mat<f64>], gram: &[(usize, us
     fixed.sort_unstable();
     fixed.dedup();
     let k = fixed.len();
+    if k == 0 {
+        return none();
+    }
     let mut pos = vec![usize::MAX; nd];
     for (q, &f) in fixed.iter().enumerate() {
         pos[f] = q;
@@ -213,13 +213,6 @@ pub fn redundant_directions(offset: &[usize], s: &[Mat<f64>], gram: &[(usize, us
     // of each vector's largest); a pivoted QR of each group's vectors picks
     // as many directions as it has vectors, those they lean on most.
     let mut root: Vec<usize> = (0..nd).collect();
-    fn find(root: &mut [usize], mut x: usize) -> usize {
-        while root[x] != x {
-            root[x] = root[root[x]];
-            x = root[x];
-        }
-        x
-    }
     let support: Vec<Vec<usize>> = (0..k)
         .map(|q| {
             let col = &z[q * nd..(q + 1) * nd];
@@ -229,7 +222,7 @@ pub fn redundant_directions(offset: &[usize], s: &[Mat<f64>], gram: &[(usize, us
         .collect();
     for sup in &support {
         for w in sup.windows(2) {
-            let (ra, rb) = (find(&mut root, w[0]), find(&mut root, w[1]));
+            let (ra, rb) = (find_root(&mut root, w[0]), find_root(&mut root, w[1]));
             if ra != rb {
                 root[ra.max(rb)] = ra.min(rb);
             }
@@ -237,7 +230,7 @@ pub fn redundant_directions(offset: &[usize], s: &[Mat<f64>], gram: &[(usize, us
     }
     let mut groups: std::collections::BTreeMap<usize, Vec<usize>> = Default::default();
     for (q, sup) in support.iter().enumerate() {
-        let r = find(&mut root, sup[0]);
+        let r = find_root(&mut root, sup[0]);
         groups.entry(r).or_default().push(q);
     }
     // Per group, Rayleigh–Ritz on the span of its kernel columns: the
