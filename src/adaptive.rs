@@ -41,7 +41,7 @@ use crate::decomposition::Decomposition;
 use crate::error::{Error, Result};
 use crate::model::Model;
 use crate::scaling::Edges;
-use crate::settings::AdaptiveThreshold;
+use crate::settings::{AdaptiveEdges, AdaptiveThreshold};
 use crate::subdomain::{orthonormal_columns, InteriorProblem, SubdomainOperator};
 use faer::Mat;
 use rayon::prelude::*;
@@ -51,6 +51,11 @@ use rayon::prelude::*;
 /// uses.
 pub fn threshold_for(threshold: AdaptiveThreshold, model: &Model) -> AdaptiveThreshold {
     AdaptiveThreshold::Value(threshold.resolve(model.elements.iter().map(|e| e.k)))
+}
+
+/// `edges` with `"auto"` decided for `model` ([`AdaptiveEdges::resolve`]).
+pub fn edges_for(edges: AdaptiveEdges, model: &Model) -> AdaptiveEdges {
+    edges.resolve(model.elements.iter().map(|e| e.k)).into()
 }
 
 /// What one side brings to the eigenproblem of a face: the principal block

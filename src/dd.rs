@@ -33,7 +33,7 @@ use crate::operator::InterfaceOperator;
 use crate::outcome::{Outcome, Refinement, Status};
 use crate::scaling::{Edges, InterfaceEntries, InterfaceScaling};
 use crate::settings::{
-    AdaptiveThreshold, MethodConfig, OrderingChoice, Preconditioner, SearchDirection, SolverSettings,
+    AdaptiveEdges, AdaptiveThreshold, MethodConfig, OrderingChoice, Preconditioner, SearchDirection, SolverSettings,
 };
 use crate::subdomain::{InteriorProblem, SubdomainOperator};
 use faer::Mat;
@@ -61,8 +61,10 @@ pub struct DdOptions {
     /// ([`crate::adaptive`]); `Auto` is resolved from the model's element
     /// stiffnesses at set-up (off for an algebraic problem).
     pub adaptive_threshold: AdaptiveThreshold,
-    /// Adaptive constraints on the edges too ([`crate::adaptive`]).
-    pub adaptive_edges: bool,
+    /// Adaptive constraints on the edges too ([`crate::adaptive`]); `Auto`
+    /// is resolved from the model's element stiffnesses at set-up (off for
+    /// an algebraic problem).
+    pub adaptive_edges: AdaptiveEdges,
     /// Fill-reducing ordering of the subdomain and interior factors.
     pub ordering: OrderingChoice,
 }
@@ -724,6 +726,7 @@ impl DdSolver {
             let t0 = Instant::now();
             let mut opts = opts;
             opts.adaptive_threshold = adaptive::threshold_for(opts.adaptive_threshold, model);
+            opts.adaptive_edges = adaptive::edges_for(opts.adaptive_edges, model);
             let problem = DdProblem::from_model_reusing(model, dec, reused, placement, opts.ordering)?;
             let factor_s = t0.elapsed().as_secs_f64();
             let name_dof = |d: usize| {
@@ -908,41 +911,42 @@ impl DdSolver {
             // every process (each edge's problems need all its subdomains),
             // and one set of constraints per edge, on the interfaces of a
             // spanning tree of its pairs (docs/design.md §4).
-            let edge_columns: Vec<Vec<(Vec<u32>, Mat<f64>)>> = if adaptive_on && opts.adaptive_edges {
-                let entries: Vec<InterfaceEntries<'_>> = dec
-                    .interfaces
-                    .iter()
-                    .map(|it| InterfaceEntries {
-                        lo: it.lo,
-                        hi: it.hi,
-                        lo_idx: &dec.entry_lo_local[it.start..it.end],
-                        hi_idx: &dec.entry_hi_local[it.start..it.end],
-                    })
-                    .collect();
-                let dofs: Vec<Vec<usize>> = dec.subdomains.iter().map(|sd| sd.dofs.clone()).collect();
-                let mult: Vec<Vec<u32>> = dec.subdomains.iter().map(|sd| sd.multiplicity.clone()).collect();
-                let edges = Edges::new(&entries, &dofs, &mult);
-                drop((entries, dofs, mult));
-                let pool = pooled.as_mut().expect("the face sides set it");
-                let held = seam.agree(adaptive::edge_sides(&edges, first, &mut operators, pool))?;
-                let constraints = adaptive::edge_constraints(&edges, &seam.gather(&held), adaptive_threshold);
-                let ends: Vec<(usize, usize)> = dec.interfaces.iter().map(|it| (it.lo, it.hi)).collect();
-                let has_face: Vec<bool> = face_entries.iter().map(|f| !f.is_empty()).collect();
-                let mut per_interface: Vec<Vec<(Vec<u32>, Mat<f64>)>> = vec![Vec::new(); ends.len()];
-                for (tree, c) in adaptive::edge_trees(&edges, &ends, &has_face)
-                    .into_iter()
-                    .zip(constraints)
-                {
-                    if let Some(c) = c {
-                        for (i, entries) in tree {
-                            per_interface[i].push((entries, c.clone()));
+            let edge_columns: Vec<Vec<(Vec<u32>, Mat<f64>)>> =
+                if adaptive_on && opts.adaptive_edges.resolve(std::iter::empty()) {
+                    let entries: Vec<InterfaceEntries<'_>> = dec
+                        .interfaces
+                        .iter()
+                        .map(|it| InterfaceEntries {
+                            lo: it.lo,
+                            hi: it.hi,
+                            lo_idx: &dec.entry_lo_local[it.start..it.end],
+                            hi_idx: &dec.entry_hi_local[it.start..it.end],
+                        })
+                        .collect();
+                    let dofs: Vec<Vec<usize>> = dec.subdomains.iter().map(|sd| sd.dofs.clone()).collect();
+                    let mult: Vec<Vec<u32>> = dec.subdomains.iter().map(|sd| sd.multiplicity.clone()).collect();
+                    let edges = Edges::new(&entries, &dofs, &mult);
+                    drop((entries, dofs, mult));
+                    let pool = pooled.as_mut().expect("the face sides set it");
+                    let held = seam.agree(adaptive::edge_sides(&edges, first, &mut operators, pool))?;
+                    let constraints = adaptive::edge_constraints(&edges, &seam.gather(&held), adaptive_threshold);
+                    let ends: Vec<(usize, usize)> = dec.interfaces.iter().map(|it| (it.lo, it.hi)).collect();
+                    let has_face: Vec<bool> = face_entries.iter().map(|f| !f.is_empty()).collect();
+                    let mut per_interface: Vec<Vec<(Vec<u32>, Mat<f64>)>> = vec![Vec::new(); ends.len()];
+                    for (tree, c) in adaptive::edge_trees(&edges, &ends, &has_face)
+                        .into_iter()
+                        .zip(constraints)
+                    {
+                        if let Some(c) = c {
+                            for (i, entries) in tree {
+                                per_interface[i].push((entries, c.clone()));
+                            }
                         }
                     }
-                }
-                per_interface
-            } else {
-                Vec::new()
-            };
+                    per_interface
+                } else {
+                    Vec::new()
+                };
             let n_adaptive = std::sync::atomic::AtomicUsize::new(0);
             let n_edge = std::sync::atomic::AtomicUsize::new(0);
             let blocks: Vec<Option<Mat<f64>>> = dec
@@ -2013,7 +2017,7 @@ pub(crate) fn cg_test_problem_on(scene: &crate::scene::Scene, subdomains: usize)
         preconditioner: Preconditioner::Dirichlet,
         interface_scaling: InterfaceScaling::Deluxe,
         adaptive_threshold: AdaptiveThreshold::OFF,
-        adaptive_edges: false,
+        adaptive_edges: AdaptiveEdges::Off,
         ordering: Default::default(),
     };
     (model, dec, opts)

@@ -20,7 +20,8 @@ use nsdd::error::{Error, Result};
 use nsdd::generate;
 use nsdd::model::Model;
 use nsdd::scene::{
-    AdaptiveThreshold, InterfaceScaling, Method, OrderingChoice, Partitioner, Preconditioner, Scene, SearchDirection,
+    AdaptiveEdges, AdaptiveThreshold, InterfaceScaling, Method, OrderingChoice, Partitioner, Preconditioner, Scene,
+    SearchDirection,
 };
 use nsdd::solve::{solve_in, SolveOptions};
 use nsdd::vtk;
@@ -110,6 +111,10 @@ fn parse_adaptive(s: &str) -> std::result::Result<AdaptiveThreshold, String> {
     s.parse()
 }
 
+fn parse_adaptive_edges(s: &str) -> std::result::Result<AdaptiveEdges, String> {
+    s.parse()
+}
+
 fn parse_d(s: &str) -> std::result::Result<SearchDirection, String> {
     let d: SearchDirection = s.parse()?;
     match d {
@@ -190,9 +195,9 @@ struct SolveArgs {
     /// Adaptive macro space of cg: eigenvalue threshold above which a face's jump modes become macro columns; 0: none; auto (the default): 5 where the elements' EA/L span 100x or more (stiff bars on soft cables), else none
     #[arg(long, value_name = "THETA|auto", value_parser = parse_adaptive, allow_hyphen_values = true)]
     adaptive_threshold: Option<AdaptiveThreshold>,
-    /// With the adaptive macro space, constraints on the edges too (dofs shared by three or more subdomains): 2-11x fewer cg iterations on 3D towers with stiff bars on soft cables; off by default (a large coarse problem can stall). `--adaptive-edges` alone means true
-    #[arg(long, value_name = "true|false", num_args = 0..=1, default_missing_value = "true")]
-    adaptive_edges: Option<bool>,
+    /// With the adaptive macro space, constraints on the edges too (dofs shared by three or more subdomains): 2-11x fewer cg iterations on 3D towers with stiff bars on soft cables; auto (the default): on where the elements' EA/L span 100x or more, as the adaptive space itself. `--adaptive-edges` alone means true
+    #[arg(long, value_name = "true|false|auto", num_args = 0..=1, default_missing_value = "true", value_parser = parse_adaptive_edges)]
+    adaptive_edges: Option<AdaptiveEdges>,
     /// Write the result JSON here (also when not converged: its `status` says why; not after an error or divergence)
     #[arg(long, value_name = "FILE")]
     out: Option<PathBuf>,

@@ -57,7 +57,7 @@ use crate::partition::Partition;
 use crate::result::HistoryEntry;
 use crate::scaling::InterfaceScaling;
 use crate::scene::{OrderingChoice, Preconditioner, SearchDirection};
-use crate::settings::AdaptiveThreshold;
+use crate::settings::{AdaptiveEdges, AdaptiveThreshold};
 use std::collections::{HashMap, HashSet};
 
 /// Stiffness fraction kept by slack cables in a step whose slack set alone
@@ -187,7 +187,7 @@ pub struct NonsmoothOptions {
     /// See [`crate::settings::SolverSettings::adaptive_threshold`].
     pub adaptive_threshold: AdaptiveThreshold,
     /// See [`crate::settings::SolverSettings::adaptive_edges`].
-    pub adaptive_edges: bool,
+    pub adaptive_edges: AdaptiveEdges,
     /// Fill-reducing ordering of the subdomain and interior factors.
     pub ordering: OrderingChoice,
 }
@@ -494,6 +494,7 @@ impl NonsmoothCg {
         // lose their slack cables, and the choice should not move with them.
         let mut opts = opts;
         opts.adaptive_threshold = crate::adaptive::threshold_for(opts.adaptive_threshold, model);
+        opts.adaptive_edges = crate::adaptive::edges_for(opts.adaptive_edges, model);
         Ok(NonsmoothCg {
             dec,
             opts,

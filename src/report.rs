@@ -530,7 +530,7 @@ fn method_options(
         preconditioner,
         interface_scaling: Default::default(),
         adaptive_threshold: Default::default(),
-        adaptive_edges: false,
+        adaptive_edges: Default::default(),
         partitioner: scene.partitioner,
         ordering: scene.ordering,
     }

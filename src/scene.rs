@@ -77,8 +77,8 @@ impl Effects {
 }
 
 pub use crate::settings::{
-    AdaptiveThreshold, InterfaceScaling, Method, MethodConfig, OrderingChoice, Partitioner, Preconditioner,
-    SearchDirection, SolverSettings,
+    AdaptiveEdges, AdaptiveThreshold, InterfaceScaling, Method, MethodConfig, OrderingChoice, Partitioner,
+    Preconditioner, SearchDirection, SolverSettings,
 };
 
 /// `[nodes]`: columnar coordinates.

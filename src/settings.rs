@@ -282,6 +282,111 @@ impl std::str::FromStr for AdaptiveThreshold {
     }
 }
 
+/// Whether `cg`'s adaptive macro space puts constraints on the edges too
+/// (the dofs shared by three or more subdomains; `crate::adaptive`).
+/// Written `true`, `false` or `"auto"` in a scene.
+///
+/// `Auto` (the default) turns them on where the elements' `EA/L` span
+/// [`AUTO_ADAPTIVE_CONTRAST`] or more, the rule that turns the adaptive
+/// space itself on by default: on the 3D towers whose bars are 1e4 × their
+/// cables the edges took `cg` up to 4.6× less time (16³ tower, 64
+/// subdomains), and as little or less on 20 of 23 such configurations;
+/// on the plates (`EA/L` spread 10-20) they add iterations.
+///
+/// ```
+/// use nsdd::settings::AdaptiveEdges;
+/// assert_eq!("auto".parse::<AdaptiveEdges>(), Ok(AdaptiveEdges::Auto));
+/// assert_eq!("true".parse::<AdaptiveEdges>(), Ok(AdaptiveEdges::On));
+/// assert!(AdaptiveEdges::Auto.resolve([1.0, 1e4]));
+/// assert!(!AdaptiveEdges::Auto.resolve([1.0, 20.0]));
+/// assert!(!AdaptiveEdges::Off.resolve([1.0, 1e4]));
+/// ```
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum AdaptiveEdges {
+    #[default]
+    Auto,
+    On,
+    Off,
+}
+
+impl AdaptiveEdges {
+    pub fn is_auto(&self) -> bool {
+        *self == AdaptiveEdges::Auto
+    }
+
+    /// Whether the edges get constraints, for a structure whose elements
+    /// have the axial stiffnesses `EA/L` in `stiffnesses` (zeros ignored;
+    /// none: off).
+    pub fn resolve(self, stiffnesses: impl IntoIterator<Item = f64>) -> bool {
+        match self {
+            AdaptiveEdges::On => true,
+            AdaptiveEdges::Off => false,
+            AdaptiveEdges::Auto => AdaptiveThreshold::Auto.resolve(stiffnesses) > 0.0,
+        }
+    }
+}
+
+impl From<bool> for AdaptiveEdges {
+    fn from(on: bool) -> Self {
+        if on {
+            AdaptiveEdges::On
+        } else {
+            AdaptiveEdges::Off
+        }
+    }
+}
+
+impl std::fmt::Display for AdaptiveEdges {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            AdaptiveEdges::Auto => "auto",
+            AdaptiveEdges::On => "true",
+            AdaptiveEdges::Off => "false",
+        })
+    }
+}
+
+impl std::str::FromStr for AdaptiveEdges {
+    type Err = String;
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        match s {
+            "auto" => Ok(AdaptiveEdges::Auto),
+            "true" => Ok(AdaptiveEdges::On),
+            "false" => Ok(AdaptiveEdges::Off),
+            _ => Err(format!("adaptive edges must be true, false or \"auto\", got '{s}'")),
+        }
+    }
+}
+
+impl Serialize for AdaptiveEdges {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> std::result::Result<S::Ok, S::Error> {
+        match self {
+            AdaptiveEdges::Auto => s.serialize_str("auto"),
+            AdaptiveEdges::On => s.serialize_bool(true),
+            AdaptiveEdges::Off => s.serialize_bool(false),
+        }
+    }
+}
+
+impl<'de> Deserialize<'de> for AdaptiveEdges {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> std::result::Result<Self, D::Error> {
+        #[derive(Deserialize)]
+        #[serde(untagged)]
+        enum Raw {
+            Bool(bool),
+            Str(String),
+        }
+        match Raw::deserialize(d)? {
+            Raw::Bool(b) => Ok(b.into()),
+            Raw::Str(s) => s.parse().map_err(|_| {
+                serde::de::Error::custom(format!(
+                    "solver.adaptive_edges: expected true, false or \"auto\", got \"{s}\""
+                ))
+            }),
+        }
+    }
+}
+
 /// `[solver]` settings. Command-line flags override them.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -316,12 +421,11 @@ pub struct SolverSettings {
     pub adaptive_threshold: AdaptiveThreshold,
     /// With the adaptive macro space, constraints on the edges too (the
     /// dofs shared by three or more subdomains), from the same eigenproblems
-    /// on every pair of an edge's subdomains (`crate::adaptive`). Off by
-    /// default (not written then): on the 3D towers whose bars are 1e4 ×
-    /// their cables it cuts `cg`'s iterations 2-11×, but a large coarse
-    /// problem can then stall short of the tolerance (docs/design.md §4).
-    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
-    pub adaptive_edges: bool,
+    /// on every pair of an edge's subdomains (`crate::adaptive`). `"auto"`
+    /// (the default, not written): on where stiff parts hang on soft ones
+    /// ([`AdaptiveEdges`]).
+    #[serde(default, skip_serializing_if = "AdaptiveEdges::is_auto")]
+    pub adaptive_edges: AdaptiveEdges,
     /// Automatic partition into `subdomains` (ignored when the elements
     /// carry their subdomain). Not written when it is the default, so that
     /// scenes stay readable by versions without the field.
@@ -450,7 +554,7 @@ impl Default for SolverSettings {
             preconditioner: Preconditioner::default(),
             interface_scaling: InterfaceScaling::default(),
             adaptive_threshold: AdaptiveThreshold::Auto,
-            adaptive_edges: false,
+            adaptive_edges: AdaptiveEdges::Auto,
             partitioner: Partitioner::default(),
             ordering: OrderingChoice::default(),
         }

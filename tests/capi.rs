@@ -993,7 +993,7 @@ fn scene_level_cg_matches_rust_api_bit_for_bit() {
         assert_eq!(it, want.iterations);
         nsdd_result_destroy(r);
         // With the edges' constraints too, bit for bit as in Rust, then off.
-        opts.adaptive_edges = true;
+        opts.adaptive_edges = nsdd::settings::AdaptiveEdges::On;
         let want = solve(&big, &opts).unwrap();
         ok(nsdd_options_set_adaptive_edges(o, 1));
         let (r, u) = solve_displacements(s, o);
@@ -1005,8 +1005,24 @@ fn scene_level_cg_matches_rust_api_bit_for_bit() {
             NsddStatus::NullPointer,
             "options",
         );
-        opts.adaptive_edges = false;
+        opts.adaptive_edges = nsdd::settings::AdaptiveEdges::Off;
         ok(nsdd_options_set_adaptive_edges(o, 0));
+        let off = solve(&big, &opts).unwrap();
+        // "auto" (the default) as in Rust: off on this grid (EA/L spread
+        // under 100), so the bits of "off".
+        opts.adaptive_edges = nsdd::settings::AdaptiveEdges::Auto;
+        let want = solve(&big, &opts).unwrap();
+        ok(nsdd_options_set_adaptive_edges_auto(o));
+        let (r, u) = solve_displacements(s, o);
+        let wu: Vec<f64> = want.displacements.iter().flatten().copied().collect();
+        assert_eq!(bits(&u), bits(&wu));
+        assert_eq!(want.displacements, off.displacements);
+        nsdd_result_destroy(r);
+        expect_err(
+            nsdd_options_set_adaptive_edges_auto(null_mut()),
+            NsddStatus::NullPointer,
+            "options",
+        );
         for bad in [0.5, 1.0, -1.0, f64::NAN, f64::INFINITY] {
             expect_err(
                 nsdd_options_set_adaptive_threshold(o, bad),
@@ -1140,7 +1156,7 @@ fn dd_options(scene_file: &str) -> DdOptions {
         preconditioner: Default::default(),
         interface_scaling: Default::default(),
         adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
-        adaptive_edges: false,
+        adaptive_edges: nsdd::settings::AdaptiveEdges::Off,
         ordering: Default::default(),
     }
 }

@@ -989,6 +989,11 @@ fn adaptive_threshold_flag_and_setup_phases() {
         read_json(&res)
     };
     let (with, without) = (run("true", "edges.json"), run("false", "faces.json"));
+    // "auto", the default, turns them on here (bars 1e4 × the cables).
+    assert_eq!(run("auto", "auto.json")["displacements"], with["displacements"]);
+    let bad = nsdd(&["solve", s(&cube), "--method", "cg", "--adaptive-edges", "sometimes"]);
+    assert_eq!(bad.status.code(), Some(2));
+    assert!(text(&bad.stderr).contains("auto"), "{}", text(&bad.stderr));
     let note = |r: &Value| -> String {
         r["notes"]
             .as_array()

@@ -132,7 +132,7 @@ fn monolevel_solves_singular_subdomains_with_the_natural_coarse_space() {
                 preconditioner: Default::default(),
                 interface_scaling: Default::default(),
                 adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
-                adaptive_edges: false,
+                adaptive_edges: nsdd::settings::AdaptiveEdges::Off,
                 ordering: Default::default(),
             },
         )
@@ -170,7 +170,7 @@ fn several_load_cases_reuse_one_setup() {
             preconditioner: Default::default(),
             interface_scaling: Default::default(),
             adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
-            adaptive_edges: false,
+            adaptive_edges: nsdd::settings::AdaptiveEdges::Off,
             ordering: Default::default(),
         },
     )
@@ -470,7 +470,7 @@ fn interface_cg_refuses_unilateral_cables() {
         preconditioner: Preconditioner::Dirichlet,
         interface_scaling: Default::default(),
         adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
-        adaptive_edges: false,
+        adaptive_edges: nsdd::settings::AdaptiveEdges::Off,
         ordering: Default::default(),
     };
     match DdSolver::new(&model, &dec, o) {
@@ -504,7 +504,7 @@ fn large_plate_coarse_problem_stays_exact() {
             preconditioner: Default::default(),
             interface_scaling: Default::default(),
             adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
-            adaptive_edges: false,
+            adaptive_edges: nsdd::settings::AdaptiveEdges::Off,
             ordering: Default::default(),
         },
     )

@@ -39,7 +39,7 @@ fn multilevel(model: &Model, dec: &Decomposition) -> DdSolver {
             preconditioner: Default::default(),
             interface_scaling: Default::default(),
             adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
-            adaptive_edges: false,
+            adaptive_edges: nsdd::settings::AdaptiveEdges::Off,
             ordering: Default::default(),
         },
     )

@@ -264,7 +264,7 @@ fn adaptive_macro_space_on_2_3_ranks() {
         unilateral: false,
         ..Default::default()
     });
-    scene.solver.adaptive_edges = true;
+    scene.solver.adaptive_edges = nsdd::settings::AdaptiveEdges::On;
     let r = check_all(&scene, "adaptive-edges", &[(Method::Cg, 8)], &[2, 3]);
     assert!(
         r.iter().all(|r| r

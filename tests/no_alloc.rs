@@ -64,7 +64,7 @@ fn extra_iterations_allocate_nothing() {
             preconditioner,
             interface_scaling: Default::default(),
             adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
-            adaptive_edges: false,
+            adaptive_edges: nsdd::settings::AdaptiveEdges::Off,
             ordering: Default::default(),
         };
         let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();
@@ -120,7 +120,7 @@ fn nonsmooth_cg_iterations_allocate_nothing() {
         preconditioner: Preconditioner::Dirichlet,
         interface_scaling: Default::default(),
         adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
-        adaptive_edges: false,
+        adaptive_edges: nsdd::settings::AdaptiveEdges::Off,
         ordering: Default::default(),
     };
     let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();

@@ -510,7 +510,7 @@ fn unchanged_subdomains_are_not_refactored() {
             preconditioner: Default::default(),
             interface_scaling: Default::default(),
             adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
-            adaptive_edges: false,
+            adaptive_edges: nsdd::settings::AdaptiveEdges::Off,
             ordering: Default::default(),
         },
     )
@@ -769,7 +769,7 @@ fn a_cable_set_that_does_not_settle_is_reported() {
         preconditioner: Default::default(),
         interface_scaling: Default::default(),
         adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
-        adaptive_edges: false,
+        adaptive_edges: nsdd::settings::AdaptiveEdges::Off,
         ordering: Default::default(),
     };
     let f = model.load_cases[0].clone();

@@ -751,7 +751,7 @@ fn kernel_dims(scene: &Scene, subdomains: usize) -> Vec<usize> {
             preconditioner: Default::default(),
             interface_scaling: Default::default(),
             adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
-            adaptive_edges: false,
+            adaptive_edges: nsdd::settings::AdaptiveEdges::Off,
             ordering: Default::default(),
         },
     )
@@ -842,7 +842,7 @@ fn resolving_reuses_factorizations_bit_identically() {
         preconditioner: Default::default(),
         interface_scaling: Default::default(),
         adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
-        adaptive_edges: false,
+        adaptive_edges: nsdd::settings::AdaptiveEdges::Off,
         ordering: Default::default(),
     };
     let mut dd = DdSolver::new(&model, &dec, o.clone()).unwrap();
@@ -1346,7 +1346,7 @@ fn solve_options_given_in_rust_are_checked_like_the_scene() {
             preconditioner: Default::default(),
             interface_scaling: Default::default(),
             adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
-            adaptive_edges: false,
+            adaptive_edges: nsdd::settings::AdaptiveEdges::Off,
             partitioner: Default::default(),
             ordering: Default::default(),
         };

@@ -143,7 +143,7 @@ fn builder_scene() -> Scene {
         preconditioner: nsdd::scene::Preconditioner::Lumped,
         interface_scaling: nsdd::scene::InterfaceScaling::Contrast,
         adaptive_threshold: nsdd::scene::AdaptiveThreshold::Value(12.0),
-        adaptive_edges: true,
+        adaptive_edges: nsdd::settings::AdaptiveEdges::On,
         partitioner: nsdd::scene::Partitioner::Metis,
         ordering: Default::default(),
     });

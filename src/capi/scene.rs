@@ -494,9 +494,11 @@ pub unsafe extern "C" fn nsdd_options_set_adaptive_threshold_auto(options: *mut 
 /// Switches `cg`'s adaptive constraints on the edges (dofs shared by three
 /// or more subdomains) on (`enable` non-zero) or off, overriding the
 /// scene's `[solver] adaptive_edges`; they need the adaptive macro space
-/// ([`nsdd_options_set_adaptive_threshold`]). Off by default: on 3D towers
-/// whose bars are far stiffer than their cables they cut the iterations
-/// 2-11×, but a large coarse problem can stall short of the tolerance.
+/// ([`nsdd_options_set_adaptive_threshold`]). By default (and after
+/// [`nsdd_options_set_adaptive_edges_auto`]) they are on where the
+/// elements' `EA/L` span 100× or more, as the adaptive space itself: on 3D
+/// towers whose bars are far stiffer than their cables they cut the
+/// iterations 2-11×; on plates they add some.
 ///
 /// # Safety
 /// `options` must be a live options handle.
@@ -507,7 +509,22 @@ pub unsafe extern "C" fn nsdd_options_set_adaptive_edges(
 ) -> NsddStatus {
     ffi_guard(|| {
         let o = unsafe { handle_mut(options, "options")? };
-        o.opts.adaptive_edges = enable != 0;
+        o.opts.adaptive_edges = (enable != 0).into();
+        Ok(())
+    })
+}
+
+/// Gives the choice of `cg`'s constraints on the edges back to the solver
+/// (the default: on where the elements' `EA/L` span 100× or more),
+/// overriding the scene's `[solver] adaptive_edges`.
+///
+/// # Safety
+/// `options` must be a live options handle.
+#[unsafe(no_mangle)]
+pub unsafe extern "C" fn nsdd_options_set_adaptive_edges_auto(options: *mut NsddOptions) -> NsddStatus {
+    ffi_guard(|| {
+        let o = unsafe { handle_mut(options, "options")? };
+        o.opts.adaptive_edges = crate::settings::AdaptiveEdges::Auto;
         Ok(())
     })
 }

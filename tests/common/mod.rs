@@ -45,7 +45,7 @@ pub fn opts(method: Method, subdomains: usize, tol: f64) -> SolveOptions {
         preconditioner: Default::default(),
         interface_scaling: Default::default(),
         adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
-        adaptive_edges: false,
+        adaptive_edges: nsdd::settings::AdaptiveEdges::Off,
         partitioner: Default::default(),
         ordering: Default::default(),
     }
