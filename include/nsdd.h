@@ -586,7 +586,7 @@ enum NsddStatus nsdd_options_set_adaptive_threshold_auto(struct NsddOptions *opt
  * [`nsdd_options_set_adaptive_edges_auto`]) they are on where the
  * elements' `EA/L` span 100× or more, as the adaptive space itself: on 3D
  * towers whose bars are far stiffer than their cables they cut the
- * iterations 2-11×; on plates they add some.
+ * iterations 2-11×; on plates they cost more set-up than they save.
  *
  * # Safety
  * `options` must be a live options handle.

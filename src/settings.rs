@@ -291,7 +291,8 @@ impl std::str::FromStr for AdaptiveThreshold {
 /// space itself on by default: on the 3D towers whose bars are 1e4 × their
 /// cables the edges took `cg` up to 4.6× less time (16³ tower, 64
 /// subdomains), and as little or less on 20 of 23 such configurations;
-/// on the plates (`EA/L` spread 10-20) they add iterations.
+/// on the plates (`EA/L` spread 10-20) they save 0-2 iterations for more
+/// set-up than that.
 ///
 /// ```
 /// use nsdd::settings::AdaptiveEdges;

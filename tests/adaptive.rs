@@ -244,6 +244,33 @@ fn edges_are_on_by_default_where_the_contrast_is_large() {
     assert!(err.contains("solver.adaptive_edges") && err.contains("auto"), "{err}");
 }
 
+/// CG's iterate `V` carries the coarse solves' round-off in its macro part
+/// (the jump along the macro columns, which the preconditioner cannot see
+/// and CG cannot reduce), accumulated from the first iterations. On the
+/// 8³ contrast tower cut in 16 with the edges' constraints, the recursive
+/// residual met the stopping test at iteration 17 while the true indicator
+/// sat on that part; CG ran on to a restart and stopped at 1.6e-11 after
+/// 28 iterations. One more coarse step on the iterate where the test would
+/// stop (and the residual replaced by the true jump) ends it at 17, at the
+/// tolerance, on the direct solution.
+#[test]
+fn the_iterate_loses_its_macro_round_off_where_the_test_would_stop() {
+    let scene = tower(&TowerParams {
+        nx: 8,
+        ny: 8,
+        nz: 8,
+        unilateral: false,
+        ..Default::default()
+    });
+    let r = cg_edges(&scene, 16, AdaptiveThreshold::Auto, true);
+    assert!(r.converged, "{:?}", r.status);
+    assert!(r.iterations <= 20, "{} iterations", r.iterations);
+    let last = r.history.last().unwrap().indicator;
+    assert!(last <= 1e-8 && last > 1e-10, "stopped at {last:.1e}");
+    let (eu, et) = errors(&r, &direct(&scene));
+    assert!(eu < 1e-8 && et < 1e-7, "errors {eu:.2e} {et:.2e}");
+}
+
 /// The 4³ contrast tower cut in 8 with the edges' constraints: the bases
 /// around its cross points overlap so much that combinations of macro
 /// columns leave no force on any subdomain, one of them almost none

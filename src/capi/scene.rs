@@ -498,7 +498,7 @@ pub unsafe extern "C" fn nsdd_options_set_adaptive_threshold_auto(options: *mut 
 /// [`nsdd_options_set_adaptive_edges_auto`]) they are on where the
 /// elements' `EA/L` span 100× or more, as the adaptive space itself: on 3D
 /// towers whose bars are far stiffer than their cables they cut the
-/// iterations 2-11×; on plates they add some.
+/// iterations 2-11×; on plates they cost more set-up than they save.
 ///
 /// # Safety
 /// `options` must be a live options handle.
