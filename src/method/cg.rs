@@ -380,15 +380,7 @@ impl DdSolver {
         self.op.apply(&self.forces, false, true);
         // The loaded step's macro part is round-off of the whole load's
         // macro forces, out of CG's reach: one more coarse step removes it.
-        self.op.correct_macro_part();
-        for (cv, s) in ws.v.iter_mut().zip(&self.op.subs) {
-            cv.copy_from_slice(&s.v);
-        }
-        for (cr, it) in ws.r.iter_mut().zip(&self.op.ifaces) {
-            cr.copy_from_slice(&it.jump);
-        }
-        self.op
-            .precondition(&ws.r, &ws.w, &mut ws.deluxe, &mut ws.sl, &mut ws.sh, &mut ws.z);
+        self.cg_take_corrected(ws);
         for (cp, cz) in ws.p.iter_mut().zip(&ws.z) {
             cp.copy_from_slice(cz);
         }
@@ -471,6 +463,13 @@ impl DdSolver {
             s.v.copy_from_slice(cv);
         }
         self.op.jumps(None);
+        self.cg_take_corrected(ws);
+    }
+
+    /// One more coarse step on the subdomains' `V` and its jumps
+    /// ([`InterfaceOperator::correct_macro_part`](crate::operator::InterfaceOperator::correct_macro_part)),
+    /// taken as the iterate: `ws.v = V`, `r = J V`, `z = M r`.
+    fn cg_take_corrected(&mut self, ws: &mut CgWorkspace) {
         self.op.correct_macro_part();
         for (cv, s) in ws.v.iter_mut().zip(&self.op.subs) {
             cv.copy_from_slice(&s.v);
