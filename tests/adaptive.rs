@@ -23,6 +23,25 @@ fn errors(r: &SolveResult, direct: &SolveResult) -> (f64, f64) {
     )
 }
 
+/// Displacements within 1e-8 and tensions within 1e-7 of `direct`
+/// (relative 2-norms).
+fn assert_near_direct(r: &SolveResult, direct: &SolveResult) {
+    let (eu, et) = errors(r, direct);
+    assert!(eu < 1e-8 && et < 1e-7, "errors {eu:.2e} {et:.2e}");
+}
+
+/// The linear cubic tower of `n³` cells whose bars are 1e4 × its cables
+/// (`gen tower nx=n ny=n nz=n unilateral=false`).
+fn contrast_cube(n: usize) -> Scene {
+    tower(&TowerParams {
+        nx: n,
+        ny: n,
+        nz: n,
+        unilateral: false,
+        ..Default::default()
+    })
+}
+
 fn cg(scene: &Scene, subdomains: usize, theta: f64) -> SolveResult {
     cg_with(scene, subdomains, AdaptiveThreshold::Value(theta))
 }
@@ -33,15 +52,22 @@ fn cg_with(scene: &Scene, subdomains: usize, theta: AdaptiveThreshold) -> SolveR
 
 fn cg_edges(scene: &Scene, subdomains: usize, theta: AdaptiveThreshold, edges: bool) -> SolveResult {
     let opts = SolveOptions {
+        adaptive_threshold: theta,
+        adaptive_edges: edges.into(),
+        ..cg_options(subdomains)
+    };
+    solve(scene, &opts).unwrap()
+}
+
+/// `cg` on `subdomains` to 1e-8, every other setting its default.
+fn cg_options(subdomains: usize) -> SolveOptions {
+    SolveOptions {
         method: Method::Cg,
         subdomains,
         tolerance: 1e-8,
         max_iterations: 3000,
-        adaptive_threshold: theta,
-        adaptive_edges: edges.into(),
         ..Default::default()
-    };
-    solve(scene, &opts).unwrap()
+    }
 }
 
 fn direct(scene: &Scene) -> SolveResult {
@@ -97,8 +123,7 @@ fn adaptive_macro_space_converges_on_the_readme_tower() {
     assert!(note_columns(&r) > 0);
     assert!(!base.notes.iter().any(|n| n.starts_with("adaptive")));
     for x in [&base, &r] {
-        let (eu, et) = errors(x, &d);
-        assert!(eu < 1e-8 && et < 1e-7, "errors {eu:.2e} {et:.2e}");
+        assert_near_direct(x, &d);
     }
 }
 
@@ -108,13 +133,7 @@ fn adaptive_macro_space_converges_on_the_readme_tower() {
 /// (`adaptive_edges`); the same answer.
 #[test]
 fn adaptive_macro_space_on_a_3d_contrast_tower() {
-    let scene = tower(&TowerParams {
-        nx: 6,
-        ny: 6,
-        nz: 6,
-        unilateral: false,
-        ..Default::default()
-    });
+    let scene = contrast_cube(6);
     let d = direct(&scene);
     let base = cg(&scene, 8, 0.0);
     let faces = cg(&scene, 8, 10.0);
@@ -145,8 +164,7 @@ fn adaptive_macro_space_on_a_3d_contrast_tower() {
     assert_eq!(note_edge_columns(&faces), 0);
     assert!(note_edge_columns(&edges) > 0, "{:?}", edges.notes);
     for r in [&faces, &edges] {
-        let (eu, et) = errors(r, &d);
-        assert!(eu < 1e-8 && et < 1e-7, "errors {eu:.2e} {et:.2e}");
+        assert_near_direct(r, &d);
     }
 }
 
@@ -162,24 +180,8 @@ fn edges_are_on_by_default_where_the_contrast_is_large() {
     use nsdd::generate::{grid, GridParams};
     use nsdd::settings::AdaptiveEdges;
     assert_eq!(SolveOptions::default().adaptive_edges, AdaptiveEdges::Auto);
-    let scene = tower(&TowerParams {
-        nx: 6,
-        ny: 6,
-        nz: 6,
-        unilateral: false,
-        ..Default::default()
-    });
-    let by_default = solve(
-        &scene,
-        &SolveOptions {
-            method: Method::Cg,
-            subdomains: 8,
-            tolerance: 1e-8,
-            max_iterations: 3000,
-            ..Default::default()
-        },
-    )
-    .unwrap();
+    let scene = contrast_cube(6);
+    let by_default = solve(&scene, &cg_options(8)).unwrap();
     let on = cg_edges(&scene, 8, AdaptiveThreshold::Auto, true);
     let faces = cg_edges(&scene, 8, AdaptiveThreshold::Auto, false);
     assert!(by_default.converged, "{:?}", by_default.status);
@@ -192,8 +194,7 @@ fn edges_are_on_by_default_where_the_contrast_is_large() {
         by_default.iterations,
         faces.iterations
     );
-    let (eu, et) = errors(&by_default, &direct(&scene));
-    assert!(eu < 1e-8 && et < 1e-7, "errors {eu:.2e} {et:.2e}");
+    assert_near_direct(&by_default, &direct(&scene));
 
     let plate = grid(&GridParams {
         nx: 12,
@@ -206,12 +207,8 @@ fn edges_are_on_by_default_where_the_contrast_is_large() {
     let with_default = solve(
         &plate,
         &SolveOptions {
-            method: Method::Cg,
-            subdomains: 9,
-            tolerance: 1e-8,
-            max_iterations: 3000,
             adaptive_threshold: AdaptiveThreshold::Value(5.0),
-            ..Default::default()
+            ..cg_options(9)
         },
     )
     .unwrap();
@@ -255,20 +252,13 @@ fn edges_are_on_by_default_where_the_contrast_is_large() {
 /// tolerance, on the direct solution.
 #[test]
 fn the_iterate_loses_its_macro_round_off_where_the_test_would_stop() {
-    let scene = tower(&TowerParams {
-        nx: 8,
-        ny: 8,
-        nz: 8,
-        unilateral: false,
-        ..Default::default()
-    });
+    let scene = contrast_cube(8);
     let r = cg_edges(&scene, 16, AdaptiveThreshold::Auto, true);
     assert!(r.converged, "{:?}", r.status);
     assert!(r.iterations <= 20, "{} iterations", r.iterations);
     let last = r.history.last().unwrap().indicator;
     assert!(last <= 1e-8 && last > 1e-10, "stopped at {last:.1e}");
-    let (eu, et) = errors(&r, &direct(&scene));
-    assert!(eu < 1e-8 && et < 1e-7, "errors {eu:.2e} {et:.2e}");
+    assert_near_direct(&r, &direct(&scene));
 }
 
 /// The 4³ contrast tower cut in 8 with the edges' constraints: the bases
@@ -280,13 +270,7 @@ fn the_iterate_loses_its_macro_round_off_where_the_test_would_stop() {
 /// redundant columns dropped (`nsdd::redundant`), 14. The note counts them.
 #[test]
 fn redundant_macro_columns_are_dropped_on_a_small_tower_with_edges() {
-    let scene = tower(&TowerParams {
-        nx: 4,
-        ny: 4,
-        nz: 4,
-        unilateral: false,
-        ..Default::default()
-    });
+    let scene = contrast_cube(4);
     let d = direct(&scene);
     let edges = cg_edges(&scene, 8, AdaptiveThreshold::Value(5.0), true);
     assert!(edges.converged, "{:?}", edges.status);
@@ -295,8 +279,7 @@ fn redundant_macro_columns_are_dropped_on_a_small_tower_with_edges() {
         "with the edges: {} iterations",
         edges.iterations
     );
-    let (eu, et) = errors(&edges, &d);
-    assert!(eu < 1e-8 && et < 1e-7, "errors {eu:.2e} {et:.2e}");
+    assert_near_direct(&edges, &d);
     let note = edges
         .notes
         .iter()
@@ -342,13 +325,7 @@ fn adaptive_macro_space_on_a_uniform_tower() {
 /// bit for bit the one without the adaptive step.
 #[test]
 fn adaptive_step_hands_its_blocks_to_the_deluxe_weights() {
-    let scene = tower(&TowerParams {
-        nx: 4,
-        ny: 4,
-        nz: 4,
-        unilateral: false,
-        ..Default::default()
-    });
+    let scene = contrast_cube(4);
     let base = cg(&scene, 8, 0.0);
     let same = cg(&scene, 8, 1e300);
     assert_eq!(note_columns(&same), 0);
@@ -443,8 +420,7 @@ fn auto_threshold_is_on_for_contrast_and_off_for_uniform_stiffness() {
         auto.iterations,
         off.iterations
     );
-    let (eu, et) = errors(&auto, &direct(&contrast));
-    assert!(eu < 1e-8 && et < 1e-7, "errors {eu:.2e} {et:.2e}");
+    assert_near_direct(&auto, &direct(&contrast));
     // The default is "auto".
     assert_eq!(SolveOptions::default().adaptive_threshold, AdaptiveThreshold::Auto);
 
