@@ -8,12 +8,12 @@
 //!
 //! [`CoarseProblem`]: the saddle point system `L f − G α = Pᵀ J K⁺ r`,
 //! `Gᵀ f = Rᵀ r`, assembled from per-subdomain [`CoarseContribution`]s and
-//! solved through a sparse Cholesky factorization of the (augmented,
-//! regularised) macro block and a small dense Schur complement on `α`. `L`
-//! is only positive semi-definite because of the redundant multipliers at
-//! cross points; those directions act on nothing, and iterative refinement
-//! against the exact system makes the relevant components exact to
-//! round-off.
+//! solved through a sparse Cholesky factorization of the augmented macro
+//! block and a small dense Schur complement on `α`. `L` can be nearly
+//! singular (redundant multipliers at cross points that the set-up did not
+//! drop, soft modes): the block is then regularised, and iterative
+//! refinement against the exact system makes the relevant components exact
+//! to round-off.
 
 use crate::error::{Error, Result};
 use crate::factor::{lower_csc, lower_diagonal, sym_matvec, FactorError, SparseCholesky};
@@ -261,6 +261,18 @@ const BACKWARD_ERROR_TARGET: f64 = 1e-14;
 /// nonsmooth 12³ tower on 64 subdomains: 90 % of the run); at 1e-13, 9.
 /// Where the pivots then fail, the floors below raise it.
 const MACRO_REGULARIZATION: f64 = 1e-13;
+/// Smallest pivot, relative to its diagonal entry, for which the macro
+/// block is factored as it is, without [`MACRO_REGULARIZATION`]. The shift
+/// leaves each solve a backward error of about its own size (5e-14 to
+/// 1e-13 on the 30³ tower and the 130² plate with 64 subdomains, above the
+/// [`BACKWARD_ERROR_TARGET`]), so every coarse solve took a refinement
+/// step, a second solve with the factor; unshifted, one solve meets the
+/// target (2e-15 to 4e-15). But where soft directions bring pivots near
+/// the shift (ratios 4e-11 on a nonsmooth 12³ tower's slack set, 2e-13 on
+/// the 10³ contrast tower cut in 64 with the edges' constraints) the
+/// unshifted factor's round-off along them took cg 2× the iterations; the
+/// regular cases seen had ratios of 1e-4 to 8e-9.
+const EXACT_MIN_PIVOT: f64 = 1e-8;
 /// Floors `φ` of the diagonal entries the regularisation is relative to, as
 /// fractions of the median entry, tried in turn: they keep the redundant
 /// (null) directions at cross points clear of round-off when their
@@ -376,29 +388,61 @@ impl CoarseProblem {
                 }
             }
         }
-        // Smallest floor first (most accurate); a larger one when round-off
-        // on the redundant directions still gives a non-positive pivot.
-        let mut factor = None;
-        for &floor in REGULARIZATION_FLOORS {
+        // First the macro block unshifted: kept where it is clearly definite
+        // (see [`EXACT_MIN_PIVOT`]). Otherwise the regularised block, with
+        // the smallest floor first (most accurate) and a larger one when
+        // round-off on the redundant directions still gives a non-positive
+        // pivot.
+        let shifted_lower = |reg: f64, floor: f64| -> Result<SparseColMat<usize, f64>> {
             let mut shifted = aug.clone();
-            shifted.extend(
-                ldiag
-                    .iter()
-                    .enumerate()
-                    .map(|(i, &d)| (i, i, MACRO_REGULARIZATION * d.max(floor * lscale))),
-            );
-            let lower = lower_csc(nf, &shifted).map_err(|e| Error::Numerical(format!("coarse operator: {e:?}")))?;
-            drop(shifted);
-            match SparseCholesky::factor_checked(&lower, SCHUR_BATCH, 0.01 * MACRO_REGULARIZATION * floor) {
-                Ok(f) => {
-                    factor = Some(f);
-                    break;
-                }
-                Err(FactorError::Pivot { .. }) => continue,
-                Err(e) => {
-                    return Err(Error::Numerical(format!(
-                        "the coarse problem could not be factored: {e:?}"
-                    )))
+            if reg > 0.0 {
+                shifted.extend(
+                    ldiag
+                        .iter()
+                        .enumerate()
+                        .map(|(i, &d)| (i, i, reg * d.max(floor * lscale))),
+                );
+            }
+            lower_csc(nf, &shifted).map_err(|e| Error::Numerical(format!("coarse operator: {e:?}")))
+        };
+        let unshifted = shifted_lower(0.0, 1.0)?;
+        // Any factor of the unshifted block, clearly definite or not, holds
+        // the symbolic analysis the shifted blocks (same pattern) reuse.
+        let mut analysed = SparseCholesky::factor_checked(&unshifted, SCHUR_BATCH, 0.0).ok();
+        let exact = analysed
+            .as_ref()
+            .is_some_and(|f| f.min_pivot_ratio(&unshifted) >= EXACT_MIN_PIVOT);
+        drop(unshifted);
+        let mut factor = if exact { analysed.take() } else { None };
+        if factor.is_none() {
+            for &floor in REGULARIZATION_FLOORS {
+                let lower = shifted_lower(MACRO_REGULARIZATION, floor)?;
+                let pivot_ratio = 0.01 * MACRO_REGULARIZATION * floor;
+                let attempt = match analysed.take() {
+                    Some(mut f) => match f.refactor(&lower, pivot_ratio) {
+                        Ok(()) => Ok(f),
+                        Err(FactorError::Pivot { dof, ratio, negative }) => {
+                            analysed = Some(f);
+                            Err(FactorError::Pivot { dof, ratio, negative })
+                        }
+                        // Another pattern after all: analysed afresh.
+                        Err(FactorError::Internal(_)) => {
+                            SparseCholesky::factor_checked(&lower, SCHUR_BATCH, pivot_ratio)
+                        }
+                    },
+                    None => SparseCholesky::factor_checked(&lower, SCHUR_BATCH, pivot_ratio),
+                };
+                match attempt {
+                    Ok(f) => {
+                        factor = Some(f);
+                        break;
+                    }
+                    Err(FactorError::Pivot { .. }) => continue,
+                    Err(e) => {
+                        return Err(Error::Numerical(format!(
+                            "the coarse problem could not be factored: {e:?}"
+                        )))
+                    }
                 }
             }
         }
@@ -518,8 +562,9 @@ impl CoarseProblem {
     /// Solves for `rhs = [a; b] = [Pᵀ J K⁺ r; Rᵀ r]` (the sign
     /// convention of docs/design.md §4); the solution is `[f; α]`. No allocation.
     ///
-    /// The regularised factorization is exact up to the shift, so one solve
-    /// is usually within round-off; where `L` has eigenvalues below the shift
+    /// The factorization is exact where the macro block is clearly definite,
+    /// and exact up to its shift otherwise, so one solve is usually within
+    /// round-off or one refinement step of it; where `L` has eigenvalues below the shift
     /// (large, ill-conditioned plates) it is used as the preconditioner of a
     /// restarted GMRES on the exact saddle system, which resolves those few
     /// directions in a few iterations where plain refinement would contract
@@ -770,8 +815,8 @@ impl CoarseProblem {
         self.last_residual
     }
 
-    /// Solves with the regularised factorization since set-up: one per
-    /// coarse solve, plus one per GMRES iteration of the refinement.
+    /// Solves with the factorization since set-up: one per coarse solve,
+    /// plus one per GMRES iteration of the refinement.
     pub fn inner_solves(&self) -> usize {
         self.inner_solves
     }

@@ -398,6 +398,22 @@ impl SparseCholesky {
         Ok(())
     }
 
+    /// The smallest pivot relative to its diagonal entry, `l_jj² / a_jj`
+    /// over the rows of `lower` (the matrix this factor was computed from).
+    pub(crate) fn min_pivot_ratio(&self, lower: &SparseColMat<usize, f64>) -> f64 {
+        let adiag = lower_diagonal(lower);
+        let ldiag = l_diagonal(&self.symbolic, &self.l_values);
+        let perm: Vec<usize> = match self.symbolic.perm() {
+            Some(p) => p.arrays().0.to_vec(),
+            None => (0..self.n).collect(),
+        };
+        ldiag
+            .iter()
+            .enumerate()
+            .map(|(p, &l)| l * l / adiag[perm[p]].max(f64::MIN_POSITIVE))
+            .fold(f64::INFINITY, f64::min)
+    }
+
     /// Matrix dimension.
     pub fn n(&self) -> usize {
         self.n

@@ -519,6 +519,49 @@ fn large_plate_coarse_problem_stays_exact() {
     );
 }
 
+/// On a plate, whose coarse problem is clearly definite, each coarse solve
+/// of cg is one solve with the coarse factor (there were two while the
+/// factor was always shifted: a refinement step after each), and the
+/// answer is the direct solver's.
+#[test]
+fn plate_coarse_solves_take_one_factor_solve_each() {
+    let scene = grid_scene(24, false);
+    let model = Model::from_scene(&scene).unwrap();
+    let dec = decompose(&model, &scene, 16).unwrap();
+    let mut dd = DdSolver::new(
+        &model,
+        &dec,
+        DdOptions {
+            coarse: true,
+            tolerance: 1e-8,
+            max_iterations: 200,
+            search_direction: SearchDirection::Auto,
+            krylov: true,
+            preconditioner: Default::default(),
+            interface_scaling: Default::default(),
+            adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
+            adaptive_edges: nsdd::settings::AdaptiveEdges::Off,
+            ordering: Default::default(),
+        },
+    )
+    .unwrap();
+    let out = dd.solve(&model.load_cases[0], false, None).unwrap();
+    assert!(out.converged(), "{:?}", out.status);
+    let solves = dd.coarse_problem_mut().unwrap().inner_solves();
+    // One coarse solve per iteration, one at the start, and one or two
+    // where the stopping test re-measures.
+    assert!(
+        solves <= out.iterations + 4,
+        "{solves} coarse factor solves in {} iterations",
+        out.iterations
+    );
+    let mut direct = DirectSolver::new(&model).unwrap();
+    let want = direct.solve(&model, &model.rhs(&model.load_cases[0])).unwrap();
+    let scale = want.u.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    let err = out.u.iter().zip(&want.u).fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+    assert!(err < 1e-7 * scale, "displacement error {err:.2e} of {scale:.2e}");
+}
+
 /// The floating parts of a plate move rigidly by far more than they
 /// strain, so the error of their kernel basis shows in the tensions. The
 /// rigid motions from the node coordinates make that part of the basis

@@ -564,13 +564,28 @@ fn coarse_solve_is_exact_on_every_row_beside_a_soft_mode() {
     assert!(backward < 1e-13, "Jacobi-scaled backward error {backward:e}");
 }
 
+/// A clearly definite macro block is factored as it is: one solve with the
+/// factor meets the backward-error target (with the regularising shift,
+/// every coarse solve took a second, refining one: half of the coarse cost
+/// of each cg iteration). With eigenvalues near 1e-13 of the largest the
+/// shift stays, and refinement makes up for it.
+#[test]
+fn clearly_definite_coarse_problem_takes_one_solve() {
+    let (backward, solves) = solve_coarse_with_soft_directions(40, 0, 1.0, 0.0);
+    assert!(backward < 1e-14, "Jacobi-scaled backward error {backward:e}");
+    assert_eq!(solves, 1, "solves with the coarse factor");
+    let (backward, solves) = solve_coarse_with_soft_directions(40, 4, 1.0, 0.0);
+    assert!(backward < 1e-13, "Jacobi-scaled backward error {backward:e}");
+    assert!(solves > 1, "the shifted factor needs refinement: {solves} solve");
+}
+
 /// Solves a coarse problem whose `nf × nf` macro block, scaled by
 /// `l_scale` and with `soft` added to its first diagonal entry, has
 /// `n_small` eigenvalues (1e-13 … of the largest) off the coordinate axes,
 /// below the regularisation, for a general right-hand side. Returns the
 /// backward error from the dense matrices (the macro block's on the
 /// Jacobi-scaled system, `‖G‖` = 1) and the number of solves with the
-/// regularised factor.
+/// coarse factor.
 fn solve_coarse_with_soft_directions(nf: usize, n_small: usize, l_scale: f64, soft: f64) -> (f64, usize) {
     use nsdd::coarse::CoarseProblem;
     let na = 4;
