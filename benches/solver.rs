@@ -84,6 +84,7 @@ fn multilevel(max_iterations: usize) -> DdOptions {
         interface_scaling: Default::default(),
         adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
         adaptive_edges: nsdd::settings::AdaptiveEdges::Off,
+        macro_degree: Default::default(),
         ordering: Default::default(),
     }
 }

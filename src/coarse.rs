@@ -34,8 +34,14 @@ pub struct MacroBasis {
 }
 
 /// Geometric macro modes at points `x` for entries of component `comp`:
-/// returns an `entries × 9` matrix (translations, rotations, extensions).
-pub fn geometric_modes(points: &[[f64; 3]], comp: &[usize]) -> Mat<f64> {
+/// returns an `entries × m` matrix. The first 9 columns are the
+/// translations, the rotations about the centroid and the extensions in
+/// the average plane (degree 1); `degree` 2 and 3 add, per component, the
+/// monomials `s1^i s2^j` of that total degree in the in-plane coordinates
+/// `(s1, s2)` along the principal axes, scaled by the points' largest
+/// spread (`m = 9 + 9` for 2, `9 + 9 + 12` for 3). Columns the points do
+/// not span (`s2` on a line) are left for the orthonormalisation to drop.
+pub fn geometric_modes(points: &[[f64; 3]], comp: &[usize], degree: u8) -> Mat<f64> {
     let n = points.len();
     let mut c = [0.0; 3];
     for p in points {
@@ -60,9 +66,20 @@ pub fn geometric_modes(points: &[[f64; 3]], comp: &[usize]) -> Mat<f64> {
         }
         Err(_) => ([1.0, 0.0, 0.0], [0.0, 1.0, 0.0]),
     };
-    Mat::from_fn(n, 9, |j, q| {
+    // (i, j) of every monomial s1^i s2^j of total degree 2..=degree.
+    let monomials: Vec<(i32, i32)> = (2..=degree as i32)
+        .flat_map(|t| (0..=t).rev().map(move |i| (i, t - i)))
+        .collect();
+    let spread = points
+        .iter()
+        .flat_map(|p| (0..3).map(move |d| (p[d] - c[d]).abs()))
+        .fold(0.0f64, f64::max);
+    let spread = if spread > 0.0 { spread } else { 1.0 };
+    Mat::from_fn(n, 9 + 3 * monomials.len(), |j, q| {
         let d = comp[j];
         let x = [points[j][0] - c[0], points[j][1] - c[1], points[j][2] - c[2]];
+        let s1 = a1[0] * x[0] + a1[1] * x[1] + a1[2] * x[2];
+        let s2 = a2[0] * x[0] + a2[1] * x[1] + a2[2] * x[2];
         match q {
             0..=2 => (d == q) as u8 as f64,
             3..=5 => {
@@ -77,32 +94,72 @@ pub fn geometric_modes(points: &[[f64; 3]], comp: &[usize]) -> Mat<f64> {
                 ];
                 cr[d]
             }
-            6 => (a1[0] * x[0] + a1[1] * x[1] + a1[2] * x[2]) * a1[d],
-            7 => (a2[0] * x[0] + a2[1] * x[1] + a2[2] * x[2]) * a2[d],
+            6 => s1 * a1[d],
+            7 => s2 * a2[d],
+            8 => s2 * a1[d] + s1 * a2[d],
             _ => {
-                let s1 = a1[0] * x[0] + a1[1] * x[1] + a1[2] * x[2];
-                let s2 = a2[0] * x[0] + a2[1] * x[1] + a2[2] * x[2];
-                s2 * a1[d] + s1 * a2[d]
+                let (component, k) = ((q - 9) / monomials.len(), (q - 9) % monomials.len());
+                if component != d {
+                    return 0.0;
+                }
+                let (i, e) = monomials[k];
+                (s1 / spread).powi(i) * (s2 / spread).powi(e)
             }
         }
     })
 }
 
+/// Whether `points` make a flat structure: the smallest principal spread
+/// at most [`crate::settings::FLAT_SPREAD_RATIO`] of the middle one
+/// (what [`crate::settings::MacroDegree::Auto`] asks).
+pub fn is_flat(points: impl Iterator<Item = [f64; 3]>) -> bool {
+    let (mut n, mut sum, mut outer) = (0.0f64, [0.0f64; 3], [[0.0f64; 3]; 3]);
+    for p in points {
+        n += 1.0;
+        for i in 0..3 {
+            sum[i] += p[i];
+            for j in 0..3 {
+                outer[i][j] += p[i] * p[j];
+            }
+        }
+    }
+    if n < 1.0 {
+        return false;
+    }
+    let cov = Mat::<f64>::from_fn(3, 3, |i, j| outer[i][j] / n - sum[i] * sum[j] / (n * n));
+    match cov.self_adjoint_eigen(faer::Side::Lower) {
+        Ok(eig) => {
+            // Ascending: the smallest and the middle variance.
+            let s = eig.S();
+            let (small, middle) = (s[0].max(0.0).sqrt(), s[1].max(0.0).sqrt());
+            middle > 0.0 && small <= crate::settings::FLAT_SPREAD_RATIO * middle
+        }
+        Err(_) => false,
+    }
+}
+
 impl MacroBasis {
-    /// Builds the basis of one interface from its geometric modes and the
-    /// kernel traces of its two subdomains (`trace_lo`, `trace_hi`:
-    /// `entries × r` each).
-    pub fn interface_block(points: &[[f64; 3]], comp: &[usize], trace_lo: &Mat<f64>, trace_hi: &Mat<f64>) -> Mat<f64> {
-        let g = geometric_modes(points, comp);
+    /// Builds the basis of one interface from its geometric modes up to
+    /// `degree` ([`geometric_modes`]) and the kernel traces of its two
+    /// subdomains (`trace_lo`, `trace_hi`: `entries × r` each).
+    pub fn interface_block(
+        points: &[[f64; 3]],
+        comp: &[usize],
+        trace_lo: &Mat<f64>,
+        trace_hi: &Mat<f64>,
+        degree: u8,
+    ) -> Mat<f64> {
+        let g = geometric_modes(points, comp, degree);
+        let ng = g.ncols();
         let n = points.len();
-        let m = 9 + trace_lo.ncols() + trace_hi.ncols();
+        let m = ng + trace_lo.ncols() + trace_hi.ncols();
         let all = Mat::from_fn(n, m, |i, j| {
-            if j < 9 {
+            if j < ng {
                 g[(i, j)]
-            } else if j < 9 + trace_lo.ncols() {
-                trace_lo[(i, j - 9)]
+            } else if j < ng + trace_lo.ncols() {
+                trace_lo[(i, j - ng)]
             } else {
-                trace_hi[(i, j - 9 - trace_lo.ncols())]
+                trace_hi[(i, j - ng - trace_lo.ncols())]
             }
         });
         orthonormal_columns(&all, MACRO_RANK_RTOL)

@@ -33,7 +33,8 @@ use crate::operator::InterfaceOperator;
 use crate::outcome::{Outcome, Refinement, Status};
 use crate::scaling::{Edges, InterfaceEntries, InterfaceScaling};
 use crate::settings::{
-    AdaptiveEdges, AdaptiveThreshold, MethodConfig, OrderingChoice, Preconditioner, SearchDirection, SolverSettings,
+    AdaptiveEdges, AdaptiveThreshold, MacroDegree, MethodConfig, OrderingChoice, Preconditioner, SearchDirection,
+    SolverSettings,
 };
 use crate::subdomain::{InteriorProblem, SubdomainOperator};
 use faer::Mat;
@@ -65,6 +66,10 @@ pub struct DdOptions {
     /// is resolved from the model's element stiffnesses at set-up (off for
     /// an algebraic problem).
     pub adaptive_edges: AdaptiveEdges,
+    /// Degree of the polynomial fields of each interface's macro basis;
+    /// `Auto` is resolved at set-up from the dof points' flatness and
+    /// whether the adaptive space is on ([`MacroDegree`]).
+    pub macro_degree: MacroDegree,
     /// Fill-reducing ordering of the subdomain and interior factors.
     pub ordering: OrderingChoice,
 }
@@ -90,6 +95,7 @@ impl DdOptions {
             interface_scaling: s.interface_scaling,
             adaptive_threshold: s.adaptive_threshold,
             adaptive_edges: s.adaptive_edges,
+            macro_degree: s.macro_degree,
             ordering: s.ordering,
         })
     }
@@ -439,6 +445,9 @@ pub struct DdStats {
     /// The threshold of the adaptive macro space used (0: off; `"auto"`
     /// resolved).
     pub adaptive_threshold: f64,
+    /// The degree of the interfaces' polynomial macro fields used
+    /// ([`MacroDegree`] resolved; 0 without geometric modes).
+    pub macro_degree: u8,
     pub kernel_unknowns: usize,
     pub interface_entries: usize,
     /// Values stored in the subdomain factors...
@@ -865,6 +874,7 @@ impl DdSolver {
         let mut adaptive_columns = 0;
         let mut adaptive_edge_columns = 0;
         let mut redundant_macro_columns = 0;
+        let mut macro_degree = 0;
         // Already resolved from the model where there is one; off for an
         // algebraic problem, which has no element stiffnesses to judge by.
         let adaptive_threshold = opts.adaptive_threshold.resolve(std::iter::empty());
@@ -886,6 +896,12 @@ impl DdSolver {
             // The adaptive macro space: each held subdomain's principal and
             // Neumann blocks on its faces, then one eigenproblem per face.
             let adaptive_on = adaptive_threshold > 0.0 && opts.krylov && !natural_only;
+            let degree = opts
+                .macro_degree
+                .resolve(crate::coarse::is_flat(dof_points.iter().map(|(p, _)| *p)), adaptive_on);
+            if !natural_only {
+                macro_degree = degree;
+            }
             let t_adaptive = Instant::now();
             let (face_entries, face_sides) = if adaptive_on {
                 let entries = adaptive::face_entries(dec);
@@ -969,7 +985,7 @@ impl DdSolver {
                     } else {
                         let dofs = &dec.entry_dof[it.start..it.end];
                         let (points, comp): (Vec<[f64; 3]>, Vec<usize>) = dofs.iter().map(|&d| dof_points[d]).unzip();
-                        let p = MacroBasis::interface_block(&points, &comp, &tlo, &thi);
+                        let p = MacroBasis::interface_block(&points, &comp, &tlo, &thi, degree);
                         let p = match face_sides.get(i) {
                             Some([Some(lo), Some(hi)]) => {
                                 let (p, added) = adaptive::enrich(p, &face_entries[i], lo, hi, adaptive_threshold);
@@ -1288,6 +1304,7 @@ impl DdSolver {
             adaptive_edge_columns,
             redundant_macro_columns,
             adaptive_threshold,
+            macro_degree,
             adaptive_s,
             kernel_unknowns: alpha_off,
             interface_entries: dec.n_entries(),
@@ -2018,6 +2035,7 @@ pub(crate) fn cg_test_problem_on(scene: &crate::scene::Scene, subdomains: usize)
         interface_scaling: InterfaceScaling::Deluxe,
         adaptive_threshold: AdaptiveThreshold::OFF,
         adaptive_edges: AdaptiveEdges::Off,
+        macro_degree: MacroDegree::Fixed(1),
         ordering: Default::default(),
     };
     (model, dec, opts)

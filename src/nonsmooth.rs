@@ -57,7 +57,7 @@ use crate::partition::Partition;
 use crate::result::HistoryEntry;
 use crate::scaling::InterfaceScaling;
 use crate::scene::{OrderingChoice, Preconditioner, SearchDirection};
-use crate::settings::{AdaptiveEdges, AdaptiveThreshold};
+use crate::settings::{AdaptiveEdges, AdaptiveThreshold, MacroDegree};
 use std::collections::{HashMap, HashSet};
 
 /// Stiffness fraction kept by slack cables in a step whose slack set alone
@@ -188,6 +188,8 @@ pub struct NonsmoothOptions {
     pub adaptive_threshold: AdaptiveThreshold,
     /// See [`crate::settings::SolverSettings::adaptive_edges`].
     pub adaptive_edges: AdaptiveEdges,
+    /// See [`crate::settings::SolverSettings::macro_degree`].
+    pub macro_degree: MacroDegree,
     /// Fill-reducing ordering of the subdomain and interior factors.
     pub ordering: OrderingChoice,
 }
@@ -599,6 +601,7 @@ impl NonsmoothCg {
             interface_scaling: self.opts.interface_scaling,
             adaptive_threshold: self.opts.adaptive_threshold,
             adaptive_edges: self.opts.adaptive_edges,
+            macro_degree: self.opts.macro_degree,
             tolerance: self.opts.tolerance,
             max_iterations: self.opts.max_iterations,
             search_direction: SearchDirection::Auto,

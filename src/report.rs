@@ -531,6 +531,7 @@ fn method_options(
         interface_scaling: Default::default(),
         adaptive_threshold: Default::default(),
         adaptive_edges: Default::default(),
+        macro_degree: Default::default(),
         partitioner: scene.partitioner,
         ordering: scene.ordering,
     }

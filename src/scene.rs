@@ -77,7 +77,7 @@ impl Effects {
 }
 
 pub use crate::settings::{
-    AdaptiveEdges, AdaptiveThreshold, InterfaceScaling, Method, MethodConfig, OrderingChoice, Partitioner,
+    AdaptiveEdges, AdaptiveThreshold, InterfaceScaling, MacroDegree, Method, MethodConfig, OrderingChoice, Partitioner,
     Preconditioner, SearchDirection, SolverSettings,
 };
 

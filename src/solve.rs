@@ -159,6 +159,7 @@ pub fn prepare_in(model: &Model, scene: &Scene, opts: &SolveOptions, placement: 
                     interface_scaling: opts.interface_scaling,
                     adaptive_threshold: opts.adaptive_threshold,
                     adaptive_edges: opts.adaptive_edges,
+                    macro_degree: opts.macro_degree,
                     ordering: opts.ordering,
                 },
                 placement,

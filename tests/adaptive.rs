@@ -54,6 +54,7 @@ fn cg_edges(scene: &Scene, subdomains: usize, theta: AdaptiveThreshold, edges: b
     let opts = SolveOptions {
         adaptive_threshold: theta,
         adaptive_edges: edges.into(),
+        macro_degree: Default::default(),
         ..cg_options(subdomains)
     };
     solve(scene, &opts).unwrap()

@@ -1049,6 +1049,41 @@ fn scene_level_cg_matches_rust_api_bit_for_bit() {
             NsddStatus::NullPointer,
             "options",
         );
+        // The polynomial macro fields, bit for bit as in Rust: degree 3 on
+        // this plate takes fewer iterations than the default 1; 0 is "auto"
+        // (3 here: a flat structure without the adaptive space).
+        let default_iterations = solve(&big, &opts).unwrap().iterations;
+        for (degree, code) in [
+            (nsdd::settings::MacroDegree::Fixed(3), 3),
+            (nsdd::settings::MacroDegree::Auto, 0),
+        ] {
+            opts.macro_degree = degree;
+            let want = solve(&big, &opts).unwrap();
+            ok(nsdd_options_set_macro_degree(o, code));
+            let (r, u) = solve_displacements(s, o);
+            let wu: Vec<f64> = want.displacements.iter().flatten().copied().collect();
+            assert_eq!(bits(&u), bits(&wu), "{degree:?}");
+            let mut it = 0;
+            ok(nsdd_result_iterations(r, &mut it));
+            assert_eq!(it, want.iterations, "{degree:?}");
+            assert!(
+                it < default_iterations,
+                "{degree:?}: {it} iterations, degree 1 {default_iterations}"
+            );
+            nsdd_result_destroy(r);
+        }
+        expect_err(
+            nsdd_options_set_macro_degree(o, 4),
+            NsddStatus::InvalidArgument,
+            "macro_degree",
+        );
+        expect_err(
+            nsdd_options_set_macro_degree(null_mut(), 3),
+            NsddStatus::NullPointer,
+            "options",
+        );
+        opts.macro_degree = nsdd::settings::MacroDegree::default();
+        ok(nsdd_options_set_macro_degree(o, 1));
         opts.adaptive_threshold = nsdd::scene::AdaptiveThreshold::OFF;
         ok(nsdd_options_set_adaptive_threshold(o, 0.0));
         nsdd_scene_destroy(s);
@@ -1157,6 +1192,7 @@ fn dd_options(scene_file: &str) -> DdOptions {
         interface_scaling: Default::default(),
         adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
         adaptive_edges: nsdd::settings::AdaptiveEdges::Off,
+        macro_degree: Default::default(),
         ordering: Default::default(),
     }
 }

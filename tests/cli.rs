@@ -1188,3 +1188,44 @@ fn ordering_flag_reaches_the_factors_and_the_report() {
     let err = text(&o.stderr);
     assert!(err.contains("nested_dissection") && err.contains("metis"), "{err}");
 }
+
+/// `--macro-degree 3` on a 16² plate cut in 16: fewer cg iterations than
+/// the default degree 1, the direct solver's answer; a value other than
+/// 1, 2, 3 or auto is refused (exit code 2, naming the choices).
+#[test]
+fn macro_degree_flag_cuts_plate_iterations() {
+    let d = tmp("macro-degree");
+    let plate = d.join("plate.toml");
+    ok(&nsdd(&[
+        "gen",
+        "grid",
+        "nx=16",
+        "ny=16",
+        "unilateral=false",
+        "t0=0",
+        "--out",
+        s(&plate),
+    ]));
+    let run = |extra: &[&str], name: &str| -> Value {
+        let res = d.join(name);
+        let mut args = vec!["solve", s(&plate), "--out", s(&res)];
+        args.extend_from_slice(extra);
+        ok(&nsdd(&args));
+        read_json(&res)
+    };
+    let direct = run(&["--method", "direct"], "direct.json");
+    let one = run(&["--method", "cg", "--subdomains", "16"], "one.json");
+    let three = run(
+        &["--method", "cg", "--subdomains", "16", "--macro-degree", "3"],
+        "three.json",
+    );
+    let (i1, i3) = (
+        one["iterations"].as_u64().unwrap(),
+        three["iterations"].as_u64().unwrap(),
+    );
+    assert!(i3 < i1, "iterations: degree 1 {i1}, degree 3 {i3}");
+    assert!(rel_err(&flat_u(&three), &flat_u(&direct)) < 1e-7);
+    let bad = nsdd(&["solve", s(&plate), "--method", "cg", "--macro-degree", "4"]);
+    assert_eq!(bad.status.code(), Some(2));
+    assert!(text(&bad.stderr).contains("auto"), "{}", text(&bad.stderr));
+}

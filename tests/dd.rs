@@ -133,6 +133,7 @@ fn monolevel_solves_singular_subdomains_with_the_natural_coarse_space() {
                 interface_scaling: Default::default(),
                 adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
                 adaptive_edges: nsdd::settings::AdaptiveEdges::Off,
+                macro_degree: Default::default(),
                 ordering: Default::default(),
             },
         )
@@ -171,6 +172,7 @@ fn several_load_cases_reuse_one_setup() {
             interface_scaling: Default::default(),
             adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
             adaptive_edges: nsdd::settings::AdaptiveEdges::Off,
+            macro_degree: Default::default(),
             ordering: Default::default(),
         },
     )
@@ -471,6 +473,7 @@ fn interface_cg_refuses_unilateral_cables() {
         interface_scaling: Default::default(),
         adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
         adaptive_edges: nsdd::settings::AdaptiveEdges::Off,
+        macro_degree: Default::default(),
         ordering: Default::default(),
     };
     match DdSolver::new(&model, &dec, o) {
@@ -505,6 +508,7 @@ fn large_plate_coarse_problem_stays_exact() {
             interface_scaling: Default::default(),
             adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
             adaptive_edges: nsdd::settings::AdaptiveEdges::Off,
+            macro_degree: Default::default(),
             ordering: Default::default(),
         },
     )
@@ -541,6 +545,7 @@ fn plate_coarse_solves_take_one_factor_solve_each() {
             interface_scaling: Default::default(),
             adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
             adaptive_edges: nsdd::settings::AdaptiveEdges::Off,
+            macro_degree: Default::default(),
             ordering: Default::default(),
         },
     )
@@ -560,6 +565,64 @@ fn plate_coarse_solves_take_one_factor_solve_each() {
     let scale = want.u.iter().fold(0.0f64, |m, v| m.max(v.abs()));
     let err = out.u.iter().zip(&want.u).fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
     assert!(err < 1e-7 * scale, "displacement error {err:.2e} of {scale:.2e}");
+}
+
+/// The polynomial macro fields (`macro_degree`): on a 24² plate cut in 16,
+/// degree 3 takes cg to the direct answer in well under half the
+/// iterations of degree 1 (8 and 22 when written); `"auto"` picks 3 there
+/// (a flat structure without the adaptive space) and 1 on a uniform
+/// tower, with the bits of degree 1.
+#[test]
+fn polynomial_macro_fields_cut_the_plate_iterations() {
+    use nsdd::settings::MacroDegree;
+    let run = |scene: &nsdd::scene::Scene, degree: MacroDegree| {
+        let model = Model::from_scene(scene).unwrap();
+        let dec = decompose(&model, scene, 16).unwrap();
+        let mut o = DdOptions::from_settings(&nsdd::settings::SolverSettings {
+            method: Method::Cg,
+            tolerance: 1e-8,
+            ..Default::default()
+        })
+        .unwrap();
+        o.macro_degree = degree;
+        let mut dd = DdSolver::new(&model, &dec, o).unwrap();
+        let out = dd.solve(&model.load_cases[0], false, None).unwrap();
+        assert!(out.converged(), "{degree:?}: {:?}", out.status);
+        let mut direct = DirectSolver::new(&model).unwrap();
+        let want = direct.solve(&model, &model.rhs(&model.load_cases[0])).unwrap();
+        let scale = want.u.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        let err = out.u.iter().zip(&want.u).fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+        assert!(
+            err < 1e-7 * scale,
+            "{degree:?}: displacement error {err:.2e} of {scale:.2e}"
+        );
+        (
+            out.iterations,
+            dd.stats().macro_degree,
+            dd.stats().macro_unknowns,
+            out.u,
+        )
+    };
+    let plate = grid_scene(24, false);
+    let (it1, d1, m1, _) = run(&plate, MacroDegree::Fixed(1));
+    let (it3, d3, m3, _) = run(&plate, MacroDegree::Fixed(3));
+    assert_eq!((d1, d3), (1, 3));
+    assert!(m3 > m1, "macro unknowns {m1} -> {m3}");
+    assert!(2 * it3 < it1, "iterations: degree 1 {it1}, degree 3 {it3}");
+    let (it_auto, d_auto, _, _) = run(&plate, MacroDegree::Auto);
+    assert_eq!((it_auto, d_auto), (it3, 3));
+    let tower_scene = tower(&TowerParams {
+        nx: 4,
+        ny: 4,
+        nz: 4,
+        ea_cable: 1e4,
+        unilateral: false,
+        ..Default::default()
+    });
+    let (_, d_tower, _, u_auto) = run(&tower_scene, MacroDegree::Auto);
+    let (_, _, _, u_one) = run(&tower_scene, MacroDegree::Fixed(1));
+    assert_eq!(d_tower, 1);
+    assert_eq!(u_auto, u_one);
 }
 
 /// The floating parts of a plate move rigidly by far more than they

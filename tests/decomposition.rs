@@ -40,6 +40,7 @@ fn multilevel(model: &Model, dec: &Decomposition) -> DdSolver {
             interface_scaling: Default::default(),
             adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
             adaptive_edges: nsdd::settings::AdaptiveEdges::Off,
+            macro_degree: Default::default(),
             ordering: Default::default(),
         },
     )

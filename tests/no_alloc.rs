@@ -65,6 +65,7 @@ fn extra_iterations_allocate_nothing() {
             interface_scaling: Default::default(),
             adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
             adaptive_edges: nsdd::settings::AdaptiveEdges::Off,
+            macro_degree: Default::default(),
             ordering: Default::default(),
         };
         let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();
@@ -121,6 +122,7 @@ fn nonsmooth_cg_iterations_allocate_nothing() {
         interface_scaling: Default::default(),
         adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
         adaptive_edges: nsdd::settings::AdaptiveEdges::Off,
+        macro_degree: Default::default(),
         ordering: Default::default(),
     };
     let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();

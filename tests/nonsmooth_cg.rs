@@ -511,6 +511,7 @@ fn unchanged_subdomains_are_not_refactored() {
             interface_scaling: Default::default(),
             adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
             adaptive_edges: nsdd::settings::AdaptiveEdges::Off,
+            macro_degree: Default::default(),
             ordering: Default::default(),
         },
     )
@@ -770,6 +771,7 @@ fn a_cable_set_that_does_not_settle_is_reported() {
         interface_scaling: Default::default(),
         adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
         adaptive_edges: nsdd::settings::AdaptiveEdges::Off,
+        macro_degree: Default::default(),
         ordering: Default::default(),
     };
     let f = model.load_cases[0].clone();

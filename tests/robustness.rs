@@ -752,6 +752,7 @@ fn kernel_dims(scene: &Scene, subdomains: usize) -> Vec<usize> {
             interface_scaling: Default::default(),
             adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
             adaptive_edges: nsdd::settings::AdaptiveEdges::Off,
+            macro_degree: Default::default(),
             ordering: Default::default(),
         },
     )
@@ -843,6 +844,7 @@ fn resolving_reuses_factorizations_bit_identically() {
         interface_scaling: Default::default(),
         adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
         adaptive_edges: nsdd::settings::AdaptiveEdges::Off,
+        macro_degree: Default::default(),
         ordering: Default::default(),
     };
     let mut dd = DdSolver::new(&model, &dec, o.clone()).unwrap();
@@ -1347,6 +1349,7 @@ fn solve_options_given_in_rust_are_checked_like_the_scene() {
             interface_scaling: Default::default(),
             adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
             adaptive_edges: nsdd::settings::AdaptiveEdges::Off,
+            macro_degree: Default::default(),
             partitioner: Default::default(),
             ordering: Default::default(),
         };

@@ -144,6 +144,7 @@ fn builder_scene() -> Scene {
         interface_scaling: nsdd::scene::InterfaceScaling::Contrast,
         adaptive_threshold: nsdd::scene::AdaptiveThreshold::Value(12.0),
         adaptive_edges: nsdd::settings::AdaptiveEdges::On,
+        macro_degree: Default::default(),
         partitioner: nsdd::scene::Partitioner::Metis,
         ordering: Default::default(),
     });
@@ -809,4 +810,32 @@ fn pvd_series_is_well_formed() {
     nsdd::vtk::write_pvd_series(&path, &steps).unwrap();
     assert_eq!(std::fs::read_to_string(&path).unwrap(), xml);
     std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// `[solver] macro_degree`: 1 (the default) is not written, 2, 3 and
+/// `"auto"` are read back, anything else is refused naming the field.
+#[test]
+fn macro_degree_round_trips_and_refuses_other_values() {
+    use nsdd::settings::MacroDegree;
+    let mut scene = Scene::load(&Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/grid-8x8.toml")).unwrap();
+    assert_eq!(scene.solver.macro_degree, MacroDegree::Fixed(1));
+    let plain = scene.to_toml_string().unwrap();
+    assert!(!plain.contains("macro_degree"));
+    for (v, text) in [
+        (MacroDegree::Fixed(2), "macro_degree = 2"),
+        (MacroDegree::Fixed(3), "macro_degree = 3"),
+        (MacroDegree::Auto, "macro_degree = \"auto\""),
+    ] {
+        scene.solver.macro_degree = v;
+        let toml = scene.to_toml_string().unwrap();
+        assert!(toml.contains(text), "{text}");
+        assert_eq!(Scene::from_toml_str(&toml).unwrap().solver.macro_degree, v);
+    }
+    let toml = scene.to_toml_string().unwrap();
+    for bad in ["macro_degree = 4", "macro_degree = 0", "macro_degree = \"cubic\""] {
+        let err = Scene::from_toml_str(&toml.replace("macro_degree = \"auto\"", bad))
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("solver.macro_degree"), "{bad}: {err}");
+    }
 }

@@ -529,6 +529,33 @@ pub unsafe extern "C" fn nsdd_options_set_adaptive_edges_auto(options: *mut Nsdd
     })
 }
 
+/// Sets the degree of the polynomial fields in each interface's macro
+/// basis (`multilevel` and `cg`), overriding the scene's `[solver]
+/// macro_degree`: 1 (the default: rigid motions and in-plane extensions),
+/// 2 or 3 (the quadratic, then cubic, fields per component added: on
+/// plates `cg` takes about half the iterations); 0 lets the solver choose
+/// (3 on a flat structure without the adaptive macro space, 1 elsewhere).
+/// Any other value is INVALID_ARGUMENT.
+///
+/// # Safety
+/// `options` must be a live options handle.
+#[unsafe(no_mangle)]
+pub unsafe extern "C" fn nsdd_options_set_macro_degree(options: *mut NsddOptions, degree: u32) -> NsddStatus {
+    ffi_guard(|| {
+        let o = unsafe { handle_mut(options, "options")? };
+        o.opts.macro_degree = match degree {
+            0 => crate::settings::MacroDegree::Auto,
+            1..=3 => crate::settings::MacroDegree::Fixed(degree as u8),
+            _ => {
+                return Err(invalid(format!(
+                    "macro_degree = {degree}: expected 0 (auto), 1, 2 or 3"
+                )))
+            }
+        };
+        Ok(())
+    })
+}
+
 /// Sets the automatic partitioner, overriding the scene's `[solver]
 /// partitioner`: a [`NsddPartitioner`] value, 0 coordinate bisection, 1
 /// METIS k-way; any other value is

@@ -46,6 +46,7 @@ pub fn opts(method: Method, subdomains: usize, tol: f64) -> SolveOptions {
         interface_scaling: Default::default(),
         adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
         adaptive_edges: nsdd::settings::AdaptiveEdges::Off,
+        macro_degree: Default::default(),
         partitioner: Default::default(),
         ordering: Default::default(),
     }
