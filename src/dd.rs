@@ -896,9 +896,11 @@ impl DdSolver {
             // The adaptive macro space: each held subdomain's principal and
             // Neumann blocks on its faces, then one eigenproblem per face.
             let adaptive_on = adaptive_threshold > 0.0 && opts.krylov && !natural_only;
-            let degree = opts
-                .macro_degree
-                .resolve(crate::coarse::is_flat(dof_points.iter().map(|(p, _)| *p)), adaptive_on);
+            let degree = opts.macro_degree.resolve(
+                crate::coarse::is_flat(dof_points.iter().map(|(p, _)| *p)),
+                adaptive_on,
+                opts.krylov,
+            );
             if !natural_only {
                 macro_degree = degree;
             }

@@ -393,31 +393,33 @@ impl<'de> Deserialize<'de> for AdaptiveEdges {
 /// in-plane extensions (9 columns), 2 and 3 add, per displacement
 /// component, the monomials of degree 2 (and 3) in the interface's two
 /// in-plane coordinates (those its points do not span drop out). Written
-/// `1`, `2`, `3` or `"auto"` in a scene; 1 is the default.
+/// `1`, `2`, `3` or `"auto"` in a scene.
 ///
-/// `Auto` is 3 on a flat structure (its nodes' smallest principal spread
-/// at most [`FLAT_SPREAD_RATIO`] of the middle one) with the adaptive
-/// macro space off, 1 elsewhere. On the plates `cg` then takes 8–16
-/// iterations where it takes 15–33 at degree 1 (24² to 130², 4–64
-/// subdomains), for the same time or less; on 3D towers the added columns
-/// cost more coarse work than they save, and with the adaptive space
-/// (stiffness contrast) they broke `cg` down. It is not the default yet:
-/// tests written for degree 1 on small grids (where degree 3 leaves the
-/// coarse problem the whole answer) still have to be redone for it.
+/// `Auto` (the default) is 3 for `cg` on a flat structure (its nodes'
+/// smallest principal spread at most [`FLAT_SPREAD_RATIO`] of the middle
+/// one) with the adaptive macro space off, 1 elsewhere. On the plates `cg`
+/// then takes 8–16 iterations where it took 15–33 (24² to 130², 4–64
+/// subdomains), for the same time or less. On 3D towers the added columns
+/// cost more coarse work than they save; with the adaptive space
+/// (stiffness contrast) they broke `cg` down; and the stationary
+/// `multilevel` stops on a floor near 1.7e-12 with them on the bundled
+/// 8×8 grid (564 iterations to 1e-12 at degree 1), so it keeps 1.
 ///
 /// ```
 /// use nsdd::settings::MacroDegree;
-/// assert_eq!(MacroDegree::default(), MacroDegree::Fixed(1));
+/// assert_eq!(MacroDegree::default(), MacroDegree::Auto);
 /// assert_eq!("auto".parse::<MacroDegree>(), Ok(MacroDegree::Auto));
 /// assert_eq!("2".parse::<MacroDegree>(), Ok(MacroDegree::Fixed(2)));
 /// assert!("4".parse::<MacroDegree>().is_err());
-/// assert_eq!(MacroDegree::Auto.resolve(true, false), 3);
-/// assert_eq!(MacroDegree::Auto.resolve(true, true), 1);
-/// assert_eq!(MacroDegree::Auto.resolve(false, false), 1);
-/// assert_eq!(MacroDegree::Fixed(2).resolve(false, true), 2);
+/// assert_eq!(MacroDegree::Auto.resolve(true, false, true), 3);
+/// assert_eq!(MacroDegree::Auto.resolve(true, false, false), 1);
+/// assert_eq!(MacroDegree::Auto.resolve(true, true, true), 1);
+/// assert_eq!(MacroDegree::Auto.resolve(false, false, true), 1);
+/// assert_eq!(MacroDegree::Fixed(2).resolve(false, true, false), 2);
 /// ```
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum MacroDegree {
+    #[default]
     Auto,
     /// 1, 2 or 3.
     Fixed(u8),
@@ -428,12 +430,6 @@ pub enum MacroDegree {
 /// 8×8 double-layer grid has 0.22, the 2×2×10 tower 1.
 pub const FLAT_SPREAD_RATIO: f64 = 0.3;
 
-impl Default for MacroDegree {
-    fn default() -> Self {
-        MacroDegree::Fixed(1)
-    }
-}
-
 impl MacroDegree {
     /// Highest degree accepted.
     pub const MAX: u8 = 3;
@@ -442,12 +438,13 @@ impl MacroDegree {
         *self == MacroDegree::default()
     }
 
-    /// The degree used on a structure that is `flat` or not, with the
-    /// adaptive macro space on or off.
-    pub fn resolve(self, flat: bool, adaptive: bool) -> u8 {
+    /// The degree used by `cg` (`cg` true) or the stationary method on a
+    /// structure that is `flat` or not, with the adaptive macro space on
+    /// or off.
+    pub fn resolve(self, flat: bool, adaptive: bool, cg: bool) -> u8 {
         match self {
             MacroDegree::Fixed(d) => d,
-            MacroDegree::Auto if flat && !adaptive => 3,
+            MacroDegree::Auto if cg && flat && !adaptive => 3,
             MacroDegree::Auto => 1,
         }
     }
@@ -545,9 +542,9 @@ pub struct SolverSettings {
     #[serde(default, skip_serializing_if = "AdaptiveEdges::is_auto")]
     pub adaptive_edges: AdaptiveEdges,
     /// Degree of the polynomial fields in each interface's macro basis
-    /// (`multilevel` and `cg`): 1 (the default, not written), 2, 3, or
-    /// `"auto"`: 3 on a flat structure without the adaptive space, 1
-    /// elsewhere ([`MacroDegree`]).
+    /// (`multilevel` and `cg`): 1, 2, 3, or `"auto"` (the default, not
+    /// written): 3 for `cg` on a flat structure without the adaptive space,
+    /// 1 elsewhere ([`MacroDegree`]).
     #[serde(default, skip_serializing_if = "MacroDegree::is_default")]
     pub macro_degree: MacroDegree,
     /// Automatic partition into `subdomains` (ignored when the elements

@@ -1050,9 +1050,16 @@ fn scene_level_cg_matches_rust_api_bit_for_bit() {
             "options",
         );
         // The polynomial macro fields, bit for bit as in Rust: degree 3 on
-        // this plate takes fewer iterations than the default 1; 0 is "auto"
-        // (3 here: a flat structure without the adaptive space).
-        let default_iterations = solve(&big, &opts).unwrap().iterations;
+        // this plate takes fewer iterations than degree 1; 0 is "auto" (the
+        // default, 3 here: a flat structure without the adaptive space).
+        opts.macro_degree = nsdd::settings::MacroDegree::Fixed(1);
+        let degree_one = solve(&big, &opts).unwrap();
+        ok(nsdd_options_set_macro_degree(o, 1));
+        let (r, u) = solve_displacements(s, o);
+        let wu: Vec<f64> = degree_one.displacements.iter().flatten().copied().collect();
+        assert_eq!(bits(&u), bits(&wu));
+        nsdd_result_destroy(r);
+        let default_iterations = degree_one.iterations;
         for (degree, code) in [
             (nsdd::settings::MacroDegree::Fixed(3), 3),
             (nsdd::settings::MacroDegree::Auto, 0),
@@ -1082,8 +1089,9 @@ fn scene_level_cg_matches_rust_api_bit_for_bit() {
             NsddStatus::NullPointer,
             "options",
         );
+        // Back to the default ("auto", 3 on this plate) on both sides.
         opts.macro_degree = nsdd::settings::MacroDegree::default();
-        ok(nsdd_options_set_macro_degree(o, 1));
+        ok(nsdd_options_set_macro_degree(o, 0));
         opts.adaptive_threshold = nsdd::scene::AdaptiveThreshold::OFF;
         ok(nsdd_options_set_adaptive_threshold(o, 0.0));
         nsdd_scene_destroy(s);

@@ -1190,8 +1190,9 @@ fn ordering_flag_reaches_the_factors_and_the_report() {
 }
 
 /// `--macro-degree 3` on a 16² plate cut in 16: fewer cg iterations than
-/// the default degree 1, the direct solver's answer; a value other than
-/// 1, 2, 3 or auto is refused (exit code 2, naming the choices).
+/// degree 1, the direct solver's answer, and the default's bits ("auto" is
+/// 3 on a plate); a value other than 1, 2, 3 or auto is refused (exit code
+/// 2, naming the choices).
 #[test]
 fn macro_degree_flag_cuts_plate_iterations() {
     let d = tmp("macro-degree");
@@ -1214,7 +1215,10 @@ fn macro_degree_flag_cuts_plate_iterations() {
         read_json(&res)
     };
     let direct = run(&["--method", "direct"], "direct.json");
-    let one = run(&["--method", "cg", "--subdomains", "16"], "one.json");
+    let one = run(
+        &["--method", "cg", "--subdomains", "16", "--macro-degree", "1"],
+        "one.json",
+    );
     let three = run(
         &["--method", "cg", "--subdomains", "16", "--macro-degree", "3"],
         "three.json",
@@ -1225,6 +1229,9 @@ fn macro_degree_flag_cuts_plate_iterations() {
     );
     assert!(i3 < i1, "iterations: degree 1 {i1}, degree 3 {i3}");
     assert!(rel_err(&flat_u(&three), &flat_u(&direct)) < 1e-7);
+    // The default ("auto") is 3 on this flat plate.
+    let default = run(&["--method", "cg", "--subdomains", "16"], "default.json");
+    assert_eq!(default["displacements"], three["displacements"]);
     let bad = nsdd(&["solve", s(&plate), "--method", "cg", "--macro-degree", "4"]);
     assert_eq!(bad.status.code(), Some(2));
     assert!(text(&bad.stderr).contains("auto"), "{}", text(&bad.stderr));

@@ -425,6 +425,11 @@ fn interface_cg_stops_near_the_true_error_crossing() {
         let err_at = |k: usize| {
             let mut o = opts(Method::Cg, n, tol);
             o.max_iterations = k;
+            // Degree 1 macro fields: at the plate's default (3) one
+            // iteration divides the error by more than the window's 100
+            // (1.97e-12 at the stop with 4 subdomains, the iterate before
+            // above 1e-8), so the window cannot be hit.
+            o.macro_degree = nsdd::settings::MacroDegree::Fixed(1);
             let r = solve(&scene, &o).unwrap();
             let eu = rel_err(&flat(&r.displacements), &flat(&direct.displacements));
             let et = rel_err(&r.tensions, &direct.tensions);

@@ -812,19 +812,19 @@ fn pvd_series_is_well_formed() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
-/// `[solver] macro_degree`: 1 (the default) is not written, 2, 3 and
-/// `"auto"` are read back, anything else is refused naming the field.
+/// `[solver] macro_degree`: `"auto"` (the default) is not written, 1, 2
+/// and 3 are read back, anything else is refused naming the field.
 #[test]
 fn macro_degree_round_trips_and_refuses_other_values() {
     use nsdd::settings::MacroDegree;
     let mut scene = Scene::load(&Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/grid-8x8.toml")).unwrap();
-    assert_eq!(scene.solver.macro_degree, MacroDegree::Fixed(1));
+    assert_eq!(scene.solver.macro_degree, MacroDegree::Auto);
     let plain = scene.to_toml_string().unwrap();
     assert!(!plain.contains("macro_degree"));
     for (v, text) in [
+        (MacroDegree::Fixed(1), "macro_degree = 1"),
         (MacroDegree::Fixed(2), "macro_degree = 2"),
         (MacroDegree::Fixed(3), "macro_degree = 3"),
-        (MacroDegree::Auto, "macro_degree = \"auto\""),
     ] {
         scene.solver.macro_degree = v;
         let toml = scene.to_toml_string().unwrap();
@@ -832,8 +832,13 @@ fn macro_degree_round_trips_and_refuses_other_values() {
         assert_eq!(Scene::from_toml_str(&toml).unwrap().solver.macro_degree, v);
     }
     let toml = scene.to_toml_string().unwrap();
+    let auto = toml.replace("macro_degree = 3", "macro_degree = \"auto\"");
+    assert_eq!(
+        Scene::from_toml_str(&auto).unwrap().solver.macro_degree,
+        MacroDegree::Auto
+    );
     for bad in ["macro_degree = 4", "macro_degree = 0", "macro_degree = \"cubic\""] {
-        let err = Scene::from_toml_str(&toml.replace("macro_degree = \"auto\"", bad))
+        let err = Scene::from_toml_str(&toml.replace("macro_degree = 3", bad))
             .unwrap_err()
             .to_string();
         assert!(err.contains("solver.macro_degree"), "{bad}: {err}");

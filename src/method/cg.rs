@@ -195,6 +195,11 @@ impl DdSolver {
                 (converged, ended) = self.cg_without_direction(ws, b_norm, &mut history, t0, iterations, |_| {
                     format!("pᵀAp = {pq:.3e} <= 0: the search direction lies in the operator's null space")
                 });
+                // This iteration counts (its operator application was made):
+                // the callback sees it like any other.
+                if let (Some(p), Some(h)) = (progress.as_mut(), history.last()) {
+                    p(iterations, h.indicator);
+                }
                 break;
             }
             let a = rz / pq;
