@@ -537,24 +537,7 @@ fn plate_coarse_solves_take_one_factor_solve_each() {
     let scene = grid_scene(24, false);
     let model = Model::from_scene(&scene).unwrap();
     let dec = decompose(&model, &scene, 16).unwrap();
-    let mut dd = DdSolver::new(
-        &model,
-        &dec,
-        DdOptions {
-            coarse: true,
-            tolerance: 1e-8,
-            max_iterations: 200,
-            search_direction: SearchDirection::Auto,
-            krylov: true,
-            preconditioner: Default::default(),
-            interface_scaling: Default::default(),
-            adaptive_threshold: nsdd::settings::AdaptiveThreshold::OFF,
-            adaptive_edges: nsdd::settings::AdaptiveEdges::Off,
-            macro_degree: Default::default(),
-            ordering: Default::default(),
-        },
-    )
-    .unwrap();
+    let mut dd = DdSolver::new(&model, &dec, cg_settings(1e-8)).unwrap();
     let out = dd.solve(&model.load_cases[0], false, None).unwrap();
     assert!(out.converged(), "{:?}", out.status);
     let solves = dd.coarse_problem_mut().unwrap().inner_solves();
@@ -565,11 +548,30 @@ fn plate_coarse_solves_take_one_factor_solve_each() {
         "{solves} coarse factor solves in {} iterations",
         out.iterations
     );
-    let mut direct = DirectSolver::new(&model).unwrap();
-    let want = direct.solve(&model, &model.rhs(&model.load_cases[0])).unwrap();
+    assert_displacements_near_direct(&model, &out.u, "");
+}
+
+/// The options of `cg` from default settings at tolerance `tol`.
+fn cg_settings(tol: f64) -> DdOptions {
+    DdOptions::from_settings(&nsdd::settings::SolverSettings {
+        method: Method::Cg,
+        tolerance: tol,
+        ..Default::default()
+    })
+    .unwrap()
+}
+
+/// Largest displacement error against the direct solve below 1e-7 of the
+/// largest displacement.
+fn assert_displacements_near_direct(model: &Model, u: &[f64], what: &str) {
+    let mut direct = DirectSolver::new(model).unwrap();
+    let want = direct.solve(model, &model.rhs(&model.load_cases[0])).unwrap();
     let scale = want.u.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-    let err = out.u.iter().zip(&want.u).fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
-    assert!(err < 1e-7 * scale, "displacement error {err:.2e} of {scale:.2e}");
+    let err = u.iter().zip(&want.u).fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+    assert!(
+        err < 1e-7 * scale,
+        "{what}: displacement error {err:.2e} of {scale:.2e}"
+    );
 }
 
 /// The polynomial macro fields (`macro_degree`): on a 24² plate cut in 16,
@@ -583,24 +585,12 @@ fn polynomial_macro_fields_cut_the_plate_iterations() {
     let run = |scene: &nsdd::scene::Scene, degree: MacroDegree| {
         let model = Model::from_scene(scene).unwrap();
         let dec = decompose(&model, scene, 16).unwrap();
-        let mut o = DdOptions::from_settings(&nsdd::settings::SolverSettings {
-            method: Method::Cg,
-            tolerance: 1e-8,
-            ..Default::default()
-        })
-        .unwrap();
+        let mut o = cg_settings(1e-8);
         o.macro_degree = degree;
         let mut dd = DdSolver::new(&model, &dec, o).unwrap();
         let out = dd.solve(&model.load_cases[0], false, None).unwrap();
         assert!(out.converged(), "{degree:?}: {:?}", out.status);
-        let mut direct = DirectSolver::new(&model).unwrap();
-        let want = direct.solve(&model, &model.rhs(&model.load_cases[0])).unwrap();
-        let scale = want.u.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-        let err = out.u.iter().zip(&want.u).fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
-        assert!(
-            err < 1e-7 * scale,
-            "{degree:?}: displacement error {err:.2e} of {scale:.2e}"
-        );
+        assert_displacements_near_direct(&model, &out.u, &format!("{degree:?}"));
         (
             out.iterations,
             dd.stats().macro_degree,
