@@ -528,6 +528,18 @@ fn solve_here(
                 st.macro_unknowns
             ));
         }
+        if st.macro_degree > 1 {
+            let why = if opts.macro_degree.is_default() {
+                " (\"auto\": cg on a flat structure without the adaptive space; macro_degree = 1 keeps the rigid \
+                 motions and extensions alone)"
+            } else {
+                ""
+            };
+            notes.push(format!(
+                "macro space: polynomial fields up to degree {} on each interface, {} macro unknowns{why}",
+                st.macro_degree, st.macro_unknowns
+            ));
+        }
         if st.redundant_macro_columns > 0 {
             notes.push(format!(
                 "macro space: dropped {} of {} columns that repeat others at cross points (combinations that \

@@ -1229,9 +1229,18 @@ fn macro_degree_flag_cuts_plate_iterations() {
     );
     assert!(i3 < i1, "iterations: degree 1 {i1}, degree 3 {i3}");
     assert!(rel_err(&flat_u(&three), &flat_u(&direct)) < 1e-7);
-    // The default ("auto") is 3 on this flat plate.
+    // The default ("auto") is 3 on this flat plate, and the result says so.
     let default = run(&["--method", "cg", "--subdomains", "16"], "default.json");
     assert_eq!(default["displacements"], three["displacements"]);
+    let says_degree = |r: &Value| {
+        r["notes"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|n| n.as_str().unwrap().contains("polynomial fields up to degree 3"))
+    };
+    assert!(says_degree(&default) && says_degree(&three), "{}", default["notes"]);
+    assert!(!says_degree(&one), "{}", one["notes"]);
     let bad = nsdd(&["solve", s(&plate), "--method", "cg", "--macro-degree", "4"]);
     assert_eq!(bad.status.code(), Some(2));
     assert!(text(&bad.stderr).contains("auto"), "{}", text(&bad.stderr));
