@@ -43,21 +43,8 @@ pub struct MacroBasis {
 /// not span (`s2` on a line) are left for the orthonormalisation to drop.
 pub fn geometric_modes(points: &[[f64; 3]], comp: &[usize], degree: u8) -> Mat<f64> {
     let n = points.len();
-    let mut c = [0.0; 3];
-    for p in points {
-        for d in 0..3 {
-            c[d] += p[d] / n as f64;
-        }
-    }
     // Principal axes of the interface's points (average plane).
-    let mut cov = Mat::<f64>::zeros(3, 3);
-    for p in points {
-        for i in 0..3 {
-            for j in 0..3 {
-                cov[(i, j)] += (p[i] - c[i]) * (p[j] - c[j]);
-            }
-        }
-    }
+    let (c, cov) = centred_scatter(points);
     let (a1, a2) = match cov.self_adjoint_eigen(faer::Side::Lower) {
         Ok(eig) => {
             let u = eig.U();
@@ -109,25 +96,36 @@ pub fn geometric_modes(points: &[[f64; 3]], comp: &[usize], degree: u8) -> Mat<f
     })
 }
 
-/// Whether `points` make a flat structure: the smallest principal spread
-/// at most [`crate::settings::FLAT_SPREAD_RATIO`] of the middle one
-/// (what [`crate::settings::MacroDegree::Auto`] asks).
-pub fn is_flat(points: impl Iterator<Item = [f64; 3]>) -> bool {
-    let (mut n, mut sum, mut outer) = (0.0f64, [0.0f64; 3], [[0.0f64; 3]; 3]);
+/// Centroid of `points` and the sum of the outer products of their
+/// offsets from it (the scatter matrix, whose eigenvectors are the
+/// principal axes).
+fn centred_scatter(points: &[[f64; 3]]) -> ([f64; 3], Mat<f64>) {
+    let n = points.len();
+    let mut c = [0.0; 3];
     for p in points {
-        n += 1.0;
+        for d in 0..3 {
+            c[d] += p[d] / n as f64;
+        }
+    }
+    let mut scatter = Mat::<f64>::zeros(3, 3);
+    for p in points {
         for i in 0..3 {
-            sum[i] += p[i];
             for j in 0..3 {
-                outer[i][j] += p[i] * p[j];
+                scatter[(i, j)] += (p[i] - c[i]) * (p[j] - c[j]);
             }
         }
     }
-    if n < 1.0 {
+    (c, scatter)
+}
+
+/// Whether `points` make a flat structure: the smallest principal spread
+/// at most [`crate::settings::FLAT_SPREAD_RATIO`] of the middle one
+/// (what [`crate::settings::MacroDegree::Auto`] asks).
+pub fn is_flat(points: &[[f64; 3]]) -> bool {
+    if points.is_empty() {
         return false;
     }
-    let cov = Mat::<f64>::from_fn(3, 3, |i, j| outer[i][j] / n - sum[i] * sum[j] / (n * n));
-    match cov.self_adjoint_eigen(faer::Side::Lower) {
+    match centred_scatter(points).1.self_adjoint_eigen(faer::Side::Lower) {
         Ok(eig) => {
             // Ascending: the smallest and the middle variance.
             let s = eig.S();
@@ -478,9 +476,9 @@ impl CoarseProblem {
                 let attempt = match analysed.take() {
                     Some(mut f) => match f.refactor(&lower, pivot_ratio) {
                         Ok(()) => Ok(f),
-                        Err(FactorError::Pivot { dof, ratio, negative }) => {
+                        Err(e @ FactorError::Pivot { .. }) => {
                             analysed = Some(f);
-                            Err(FactorError::Pivot { dof, ratio, negative })
+                            Err(e)
                         }
                         // Another pattern after all: analysed afresh.
                         Err(FactorError::Internal(_)) => {

@@ -896,11 +896,12 @@ impl DdSolver {
             // The adaptive macro space: each held subdomain's principal and
             // Neumann blocks on its faces, then one eigenproblem per face.
             let adaptive_on = adaptive_threshold > 0.0 && opts.krylov && !natural_only;
-            let degree = opts.macro_degree.resolve(
-                crate::coarse::is_flat(dof_points.iter().map(|(p, _)| *p)),
-                adaptive_on,
-                opts.krylov,
-            );
+            // Flatness is only asked where "auto" can pick by it (cg).
+            let flat = opts.macro_degree.is_default() && opts.krylov && {
+                let points: Vec<[f64; 3]> = dof_points.iter().map(|(p, _)| *p).collect();
+                crate::coarse::is_flat(&points)
+            };
+            let degree = opts.macro_degree.resolve(flat, adaptive_on, opts.krylov);
             if !natural_only {
                 macro_degree = degree;
             }

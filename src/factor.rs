@@ -302,10 +302,7 @@ impl SparseCholesky {
             self.numeric_workspace = Some(fbuf);
         }
         self.timings.numeric_s = t.elapsed().as_secs_f64();
-        let perm_fwd: Vec<usize> = match symbolic.perm() {
-            Some(p) => p.arrays().0.to_vec(),
-            None => (0..n).collect(),
-        };
+        let perm_fwd = forward_perm(symbolic);
         if let Err(faer::linalg::cholesky::llt::factor::LltError::NonPositivePivot { index }) = res {
             // faer 0.24.4 reports the failing pivot one-based from its
             // simplicial kernel (`k + 1`) but zero-based from its supernodal
@@ -381,12 +378,9 @@ impl SparseCholesky {
         let adiag = lower_diagonal(lower);
         let scale = adiag.iter().fold(0.0f64, |m, v| m.max(v.abs()));
         let ldiag = l_diagonal(&self.symbolic, &self.l_values);
-        for (p, &l) in ldiag.iter().enumerate() {
-            let orig = perm_fwd[p];
+        for (orig, ratio) in pivot_ratios(&ldiag, &adiag, perm_fwd) {
             // Relative to the row's own diagonal, and absolutely to the
             // largest one: an all-zero row is a mechanism too.
-            let ad = adiag[orig].max(f64::MIN_POSITIVE);
-            let ratio = (l * l) / ad;
             if !(ratio >= pivot_ratio) || adiag[orig] <= pivot_ratio * scale * 1e-4 {
                 return Err(FactorError::Pivot {
                     dof: orig,
@@ -401,16 +395,9 @@ impl SparseCholesky {
     /// The smallest pivot relative to its diagonal entry, `l_jj² / a_jj`
     /// over the rows of `lower` (the matrix this factor was computed from).
     pub(crate) fn min_pivot_ratio(&self, lower: &SparseColMat<usize, f64>) -> f64 {
-        let adiag = lower_diagonal(lower);
         let ldiag = l_diagonal(&self.symbolic, &self.l_values);
-        let perm: Vec<usize> = match self.symbolic.perm() {
-            Some(p) => p.arrays().0.to_vec(),
-            None => (0..self.n).collect(),
-        };
-        ldiag
-            .iter()
-            .enumerate()
-            .map(|(p, &l)| l * l / adiag[perm[p]].max(f64::MIN_POSITIVE))
+        pivot_ratios(&ldiag, &lower_diagonal(lower), &forward_perm(&self.symbolic))
+            .map(|(_, ratio)| ratio)
             .fold(f64::INFINITY, f64::min)
     }
 
@@ -1131,6 +1118,29 @@ pub struct PivotScan {
     pub negligible: Vec<usize>,
     /// Rows whose pivot is clearly negative, with `d / A_jj`.
     pub negative: Vec<(usize, f64)>,
+}
+
+/// The factor's forward permutation (position in the factor → row of the
+/// matrix as numbered).
+fn forward_perm(symbolic: &SymbolicCholesky<usize>) -> Vec<usize> {
+    match symbolic.perm() {
+        Some(p) => p.arrays().0.to_vec(),
+        None => (0..symbolic.nrows()).collect(),
+    }
+}
+
+/// `(row, l_jj² / a_jj)` of every pivot in factor order: `ldiag` the
+/// factor's diagonal, `adiag` the matrix's, `perm_fwd` the factor's
+/// forward permutation.
+fn pivot_ratios<'a>(
+    ldiag: &'a [f64],
+    adiag: &'a [f64],
+    perm_fwd: &'a [usize],
+) -> impl Iterator<Item = (usize, f64)> + 'a {
+    ldiag
+        .iter()
+        .zip(perm_fwd)
+        .map(move |(&l, &orig)| (orig, (l * l) / adiag[orig].max(f64::MIN_POSITIVE)))
 }
 
 /// Scans the pivots of the matrix whose lower triangle is `lower`, eliminated
