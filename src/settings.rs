@@ -439,6 +439,19 @@ impl MacroDegree {
         *self == MacroDegree::default()
     }
 
+    /// `Fixed(d)` where `d` is a degree accepted (1 to [`Self::MAX`]).
+    pub fn fixed(d: u8) -> Option<MacroDegree> {
+        (1..=Self::MAX).contains(&d).then_some(MacroDegree::Fixed(d))
+    }
+
+    /// Whether this is `Auto` or a degree accepted.
+    pub fn is_valid(&self) -> bool {
+        match *self {
+            MacroDegree::Auto => true,
+            MacroDegree::Fixed(d) => Self::fixed(d).is_some(),
+        }
+    }
+
     /// The degree used by `cg` (`cg` true) or the stationary method on a
     /// structure that is `flat` or not, with the adaptive macro space on
     /// or off.
@@ -465,10 +478,11 @@ impl std::str::FromStr for MacroDegree {
     fn from_str(s: &str) -> std::result::Result<Self, String> {
         match s {
             "auto" => Ok(MacroDegree::Auto),
-            _ => match s.parse::<u8>() {
-                Ok(d) if (1..=MacroDegree::MAX).contains(&d) => Ok(MacroDegree::Fixed(d)),
-                _ => Err(format!("macro degree must be 1, 2, 3 or \"auto\", got '{s}'")),
-            },
+            _ => s
+                .parse::<u8>()
+                .ok()
+                .and_then(MacroDegree::fixed)
+                .ok_or_else(|| format!("macro degree must be 1, 2, 3 or \"auto\", got '{s}'")),
         }
     }
 }
@@ -494,10 +508,10 @@ impl<'de> Deserialize<'de> for MacroDegree {
             serde::de::Error::custom(format!("solver.macro_degree: expected 1, 2, 3 or \"auto\", got {what}"))
         };
         match Raw::deserialize(d)? {
-            Raw::Int(i) => match u8::try_from(i) {
-                Ok(d) if (1..=MacroDegree::MAX).contains(&d) => Ok(MacroDegree::Fixed(d)),
-                _ => Err(bad(i.to_string())),
-            },
+            Raw::Int(i) => u8::try_from(i)
+                .ok()
+                .and_then(MacroDegree::fixed)
+                .ok_or_else(|| bad(i.to_string())),
             Raw::Str(s) => s.parse().map_err(|_| bad(format!("\"{s}\""))),
         }
     }
@@ -707,14 +721,12 @@ impl SolverSettings {
                 format!("must be \"auto\", 0 (no adaptive macro columns) or a finite number above 1 (the eigenvalues are at least 1), got {theta}"),
             ));
         }
-        if let MacroDegree::Fixed(d) = self.macro_degree {
-            if !(1..=MacroDegree::MAX).contains(&d) {
-                return Err(Error::input(
-                    "solver.macro_degree",
-                    None,
-                    format!("must be 1, 2, 3 or \"auto\", got {d}"),
-                ));
-            }
+        if !self.macro_degree.is_valid() {
+            return Err(Error::input(
+                "solver.macro_degree",
+                None,
+                format!("must be 1, 2, 3 or \"auto\", got {}", self.macro_degree),
+            ));
         }
         if let SearchDirection::Value(d) = self.search_direction {
             if !(d > 0.0 && d.is_finite()) {

@@ -545,12 +545,10 @@ pub unsafe extern "C" fn nsdd_options_set_macro_degree(options: *mut NsddOptions
         let o = unsafe { handle_mut(options, "options")? };
         o.opts.macro_degree = match degree {
             0 => crate::settings::MacroDegree::Auto,
-            1..=3 => crate::settings::MacroDegree::Fixed(degree as u8),
-            _ => {
-                return Err(invalid(format!(
-                    "macro_degree = {degree}: expected 0 (auto), 1, 2 or 3"
-                )))
-            }
+            d => u8::try_from(d)
+                .ok()
+                .and_then(crate::settings::MacroDegree::fixed)
+                .ok_or_else(|| invalid(format!("macro_degree = {degree}: expected 0 (auto), 1, 2 or 3")))?,
         };
         Ok(())
     })
