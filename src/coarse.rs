@@ -96,6 +96,15 @@ pub fn geometric_modes(points: &[[f64; 3]], comp: &[usize], degree: u8) -> Mat<f
     })
 }
 
+/// Number of distinct points among `points` (the nodes of an interface's
+/// entries: up to three entries share one).
+pub fn distinct_points(points: &[[f64; 3]]) -> usize {
+    let mut bits: Vec<[u64; 3]> = points.iter().map(|p| p.map(f64::to_bits)).collect();
+    bits.sort_unstable();
+    bits.dedup();
+    bits.len()
+}
+
 /// Centroid of `points` and the sum of the outer products of their
 /// offsets from it (the scatter matrix, whose eigenvectors are the
 /// principal axes).

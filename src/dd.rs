@@ -445,9 +445,14 @@ pub struct DdStats {
     /// The threshold of the adaptive macro space used (0: off; `"auto"`
     /// resolved).
     pub adaptive_threshold: f64,
-    /// The degree of the interfaces' polynomial macro fields used
+    /// The highest degree of the interfaces' polynomial macro fields used
     /// ([`MacroDegree`] resolved; 0 without geometric modes).
     pub macro_degree: u8,
+    /// Interfaces whose macro fields go above degree 1 (of
+    /// [`Self::interfaces`]; under MPI, of those this process holds).
+    pub polynomial_interfaces: usize,
+    /// Interfaces of the decomposition.
+    pub interfaces: usize,
     pub kernel_unknowns: usize,
     pub interface_entries: usize,
     /// Values stored in the subdomain factors...
@@ -875,6 +880,7 @@ impl DdSolver {
         let mut adaptive_edge_columns = 0;
         let mut redundant_macro_columns = 0;
         let mut macro_degree = 0;
+        let mut polynomial_interfaces = 0;
         // Already resolved from the model where there is one; off for an
         // algebraic problem, which has no element stiffnesses to judge by.
         let adaptive_threshold = opts.adaptive_threshold.resolve(std::iter::empty());
@@ -902,9 +908,6 @@ impl DdSolver {
                 crate::coarse::is_flat(&points)
             };
             let degree = opts.macro_degree.resolve(flat, adaptive_on, opts.krylov);
-            if !natural_only {
-                macro_degree = degree;
-            }
             let t_adaptive = Instant::now();
             let (face_entries, face_sides) = if adaptive_on {
                 let entries = adaptive::face_entries(dec);
@@ -968,6 +971,8 @@ impl DdSolver {
                 };
             let n_adaptive = std::sync::atomic::AtomicUsize::new(0);
             let n_edge = std::sync::atomic::AtomicUsize::new(0);
+            let highest_degree = std::sync::atomic::AtomicU8::new(0);
+            let n_polynomial = std::sync::atomic::AtomicUsize::new(0);
             let blocks: Vec<Option<Mat<f64>>> = dec
                 .interfaces
                 .par_iter()
@@ -988,6 +993,13 @@ impl DdSolver {
                     } else {
                         let dofs = &dec.entry_dof[it.start..it.end];
                         let (points, comp): (Vec<[f64; 3]>, Vec<usize>) = dofs.iter().map(|&d| dof_points[d]).unzip();
+                        let degree = opts
+                            .macro_degree
+                            .on_interface(degree, crate::coarse::distinct_points(&points));
+                        highest_degree.fetch_max(degree, std::sync::atomic::Ordering::Relaxed);
+                        if degree > 1 {
+                            n_polynomial.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                        }
                         let p = MacroBasis::interface_block(&points, &comp, &tlo, &thi, degree);
                         let p = match face_sides.get(i) {
                             Some([Some(lo), Some(hi)]) => {
@@ -1012,6 +1024,8 @@ impl DdSolver {
                 .collect();
             drop((traces, edge_columns));
             adaptive_edge_columns = n_edge.into_inner();
+            macro_degree = highest_degree.into_inner();
+            polynomial_interfaces = n_polynomial.into_inner();
             adaptive_columns = n_adaptive.into_inner() + adaptive_edge_columns;
             if adaptive_on {
                 adaptive_s = t_adaptive.elapsed().as_secs_f64();
@@ -1308,6 +1322,8 @@ impl DdSolver {
             redundant_macro_columns,
             adaptive_threshold,
             macro_degree,
+            polynomial_interfaces,
+            interfaces: dec.interfaces.len(),
             adaptive_s,
             kernel_unknowns: alpha_off,
             interface_entries: dec.n_entries(),

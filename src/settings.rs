@@ -397,9 +397,14 @@ impl<'de> Deserialize<'de> for AdaptiveEdges {
 ///
 /// `Auto` (the default) is 3 for `cg` on a flat structure (its nodes'
 /// smallest principal spread at most [`FLAT_SPREAD_RATIO`] of the middle
-/// one) with the adaptive macro space off, 1 elsewhere. On the plates `cg`
-/// then takes 8–16 iterations where it took 15–33 (24² to 130², 4–64
-/// subdomains), for the same time or less. On 3D towers the added columns
+/// one) with the adaptive macro space off, on the interfaces of at least
+/// [`POLYNOMIAL_FACE_NODES`] nodes; 1 elsewhere. On the plates `cg` then
+/// takes 8–17 iterations where it took 15–33 (24² in 4 to 130² in 64),
+/// for the same time or up to 1.3× less. Smaller interfaces keep degree 1:
+/// there the added columns make the coarse problem a large part of the
+/// interface (13 % of the 65² plate's dofs with 64 subdomains), and cg
+/// took 1.2–2.3× longer with them although its iterations fell 2–3×. On
+/// 3D towers the added columns
 /// cost more coarse work than they save; with the adaptive space
 /// (stiffness contrast) they broke `cg` down; and the stationary
 /// `multilevel` stops on a floor near 1.7e-12 with them on the bundled
@@ -416,6 +421,10 @@ impl<'de> Deserialize<'de> for AdaptiveEdges {
 /// assert_eq!(MacroDegree::Auto.resolve(true, true, true), 1);
 /// assert_eq!(MacroDegree::Auto.resolve(false, false, true), 1);
 /// assert_eq!(MacroDegree::Fixed(2).resolve(false, true, false), 2);
+/// // Small interfaces keep degree 1 under "auto", not when it is fixed.
+/// assert_eq!(MacroDegree::Auto.on_interface(3, 12), 1);
+/// assert_eq!(MacroDegree::Auto.on_interface(3, 40), 3);
+/// assert_eq!(MacroDegree::Fixed(3).on_interface(3, 12), 3);
 /// ```
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum MacroDegree {
@@ -430,6 +439,18 @@ pub enum MacroDegree {
 /// free dofs' points): the bundled 8×8 double-layer grid's nodes have 0.20,
 /// a 24² one 0.07, the bundled 4×4 grid 0.37 and the 2×2×10 tower 1.
 pub const FLAT_SPREAD_RATIO: f64 = 0.3;
+
+/// Fewest nodes on an interface for [`MacroDegree::Auto`] to give it the
+/// polynomial fields above degree 1. Measured on double-layer plates cut
+/// in 4, 16 and 64 (best of 2–3 runs each, `cg` to 1e-8): degree 3 was
+/// 1.2–2.3× slower than degree 1 where the faces had 6–16 nodes (16² and
+/// 24² plates in 16 and 64, 40² to 65² in 64) although it took 2–3× fewer
+/// iterations, within ±10 % at 20–24 nodes (40² and 48² in 16, 24² in 4),
+/// and up to 1.3× faster from 32 nodes on (65² in 4 and 16, 130²). The
+/// nonsmooth cg's structures without their slack cables have smaller
+/// faces (21–25 nodes where the 32² plate cut in 4 has 32): at 20 they
+/// keep degree 3 and the iterations of a uniform degree 3.
+pub const POLYNOMIAL_FACE_NODES: usize = 20;
 
 impl MacroDegree {
     /// Highest degree accepted.
@@ -452,14 +473,24 @@ impl MacroDegree {
         }
     }
 
-    /// The degree used by `cg` (`cg` true) or the stationary method on a
-    /// structure that is `flat` or not, with the adaptive macro space on
-    /// or off.
+    /// The highest degree used by `cg` (`cg` true) or the stationary
+    /// method on a structure that is `flat` or not, with the adaptive macro
+    /// space on or off.
     pub fn resolve(self, flat: bool, adaptive: bool, cg: bool) -> u8 {
         match self {
             MacroDegree::Fixed(d) => d,
             MacroDegree::Auto if cg && flat && !adaptive => 3,
             MacroDegree::Auto => 1,
+        }
+    }
+
+    /// The degree of one interface of `nodes` nodes, `resolved` being what
+    /// [`Self::resolve`] gave: a fixed degree holds on every interface,
+    /// `Auto` keeps 1 on those smaller than [`POLYNOMIAL_FACE_NODES`].
+    pub fn on_interface(self, resolved: u8, nodes: usize) -> u8 {
+        match self {
+            MacroDegree::Auto if nodes < POLYNOMIAL_FACE_NODES => 1,
+            _ => resolved,
         }
     }
 }
@@ -558,8 +589,8 @@ pub struct SolverSettings {
     pub adaptive_edges: AdaptiveEdges,
     /// Degree of the polynomial fields in each interface's macro basis
     /// (`multilevel` and `cg`): 1, 2, 3, or `"auto"` (the default, not
-    /// written): 3 for `cg` on a flat structure without the adaptive space,
-    /// 1 elsewhere ([`MacroDegree`]).
+    /// written): 3 for `cg` on the large interfaces of a flat structure
+    /// without the adaptive space, 1 elsewhere ([`MacroDegree`]).
     #[serde(default, skip_serializing_if = "MacroDegree::is_default")]
     pub macro_degree: MacroDegree,
     /// Automatic partition into `subdomains` (ignored when the elements

@@ -530,14 +530,17 @@ fn solve_here(
         }
         if st.macro_degree > 1 {
             let why = if opts.macro_degree.is_default() {
-                " (\"auto\": cg on a flat structure without the adaptive space; macro_degree = 1 keeps the rigid \
-                 motions and extensions alone)"
+                format!(
+                    " (\"auto\": cg on a flat structure without the adaptive space, on the interfaces of {} nodes or \
+                     more; macro_degree = 1 keeps the rigid motions and extensions alone)",
+                    crate::settings::POLYNOMIAL_FACE_NODES
+                )
             } else {
-                ""
+                String::new()
             };
             notes.push(format!(
-                "macro space: polynomial fields up to degree {} on each interface, {} macro unknowns{why}",
-                st.macro_degree, st.macro_unknowns
+                "macro space: polynomial fields up to degree {} on {} of {} interfaces, {} macro unknowns{why}",
+                st.macro_degree, st.polynomial_interfaces, st.interfaces, st.macro_unknowns
             ));
         }
         if st.redundant_macro_columns > 0 {

@@ -576,36 +576,51 @@ fn assert_displacements_near_direct(model: &Model, u: &[f64], what: &str) {
 
 /// The polynomial macro fields (`macro_degree`): on a 24² plate cut in 16,
 /// degree 3 takes cg to the direct answer in well under half the
-/// iterations of degree 1 (8 and 22 when written); `"auto"` picks 3 there
-/// (a flat structure without the adaptive space) and 1 on a uniform
-/// tower, with the bits of degree 1.
+/// iterations of degree 1 (8 and 22 when written). `"auto"` keeps degree 1
+/// there, whose interfaces have at most 14 nodes (below
+/// `POLYNOMIAL_FACE_NODES`), with the bits of degree 1; on a 40² plate cut
+/// in 4 (interfaces of ~40 nodes) it picks 3 on the large interfaces and
+/// cuts the iterations; on a uniform tower it keeps 1, with the bits of
+/// degree 1.
 #[test]
 fn polynomial_macro_fields_cut_the_plate_iterations() {
     use nsdd::settings::MacroDegree;
-    let run = |scene: &nsdd::scene::Scene, degree: MacroDegree| {
+    let run = |scene: &nsdd::scene::Scene, parts: usize, degree: MacroDegree| {
         let model = Model::from_scene(scene).unwrap();
-        let dec = decompose(&model, scene, 16).unwrap();
+        let dec = decompose(&model, scene, parts).unwrap();
         let mut o = cg_settings(1e-8);
         o.macro_degree = degree;
         let mut dd = DdSolver::new(&model, &dec, o).unwrap();
         let out = dd.solve(&model.load_cases[0], false, None).unwrap();
         assert!(out.converged(), "{degree:?}: {:?}", out.status);
         assert_displacements_near_direct(&model, &out.u, &format!("{degree:?}"));
+        let st = dd.stats();
         (
             out.iterations,
-            dd.stats().macro_degree,
-            dd.stats().macro_unknowns,
+            (st.macro_degree, st.polynomial_interfaces, st.interfaces),
+            st.macro_unknowns,
             out.u,
         )
     };
     let plate = grid_scene(24, false);
-    let (it1, d1, m1, _) = run(&plate, MacroDegree::Fixed(1));
-    let (it3, d3, m3, _) = run(&plate, MacroDegree::Fixed(3));
-    assert_eq!((d1, d3), (1, 3));
+    let (it1, d1, m1, u1) = run(&plate, 16, MacroDegree::Fixed(1));
+    let (it3, d3, m3, _) = run(&plate, 16, MacroDegree::Fixed(3));
+    assert_eq!((d1.0, d3.0), (1, 3));
+    assert_eq!((d1.1, d3.1), (0, d3.2), "degree 3 everywhere when fixed");
     assert!(m3 > m1, "macro unknowns {m1} -> {m3}");
     assert!(2 * it3 < it1, "iterations: degree 1 {it1}, degree 3 {it3}");
-    let (it_auto, d_auto, _, _) = run(&plate, MacroDegree::Auto);
-    assert_eq!((it_auto, d_auto), (it3, 3));
+    let (it_auto, d_auto, _, u_auto) = run(&plate, 16, MacroDegree::Auto);
+    assert_eq!((it_auto, d_auto.0, d_auto.1), (it1, 1, 0));
+    assert_eq!(u_auto, u1);
+    let large = grid_scene(40, false);
+    let (it1, _, _, _) = run(&large, 4, MacroDegree::Fixed(1));
+    let (it_auto, (degree, polynomial, interfaces), _, _) = run(&large, 4, MacroDegree::Auto);
+    assert_eq!(degree, 3);
+    assert!(
+        (4..interfaces).contains(&polynomial),
+        "{polynomial} of {interfaces} interfaces at degree 3: the 4 faces, not the cross points"
+    );
+    assert!(it_auto < it1, "iterations: degree 1 {it1}, auto {it_auto}");
     let tower_scene = tower(&TowerParams {
         nx: 4,
         ny: 4,
@@ -614,9 +629,9 @@ fn polynomial_macro_fields_cut_the_plate_iterations() {
         unilateral: false,
         ..Default::default()
     });
-    let (_, d_tower, _, u_auto) = run(&tower_scene, MacroDegree::Auto);
-    let (_, _, _, u_one) = run(&tower_scene, MacroDegree::Fixed(1));
-    assert_eq!(d_tower, 1);
+    let (_, d_tower, _, u_auto) = run(&tower_scene, 16, MacroDegree::Auto);
+    let (_, _, _, u_one) = run(&tower_scene, 16, MacroDegree::Fixed(1));
+    assert_eq!(d_tower.0, 1);
     assert_eq!(u_auto, u_one);
 }
 
