@@ -609,8 +609,9 @@ enum NsddStatus nsdd_options_set_adaptive_edges_auto(struct NsddOptions *options
  * macro_degree`: 1 (rigid motions and in-plane extensions), 2 or 3 (the
  * quadratic, then cubic, fields per component added: on plates `cg` takes
  * about half the iterations); 0 lets the solver choose (the default: 3
- * for `cg` on a flat structure without the adaptive macro space, 1
- * elsewhere). Any other value is INVALID_ARGUMENT.
+ * for `cg` on the interfaces of 20 nodes or more of a flat structure
+ * without the adaptive macro space, 1 elsewhere). Any other value is
+ * INVALID_ARGUMENT.
  *
  * # Safety
  * `options` must be a live options handle.
