@@ -398,17 +398,17 @@ impl<'de> Deserialize<'de> for AdaptiveEdges {
 /// `Auto` (the default) is 3 for `cg` on a flat structure (its nodes'
 /// smallest principal spread at most [`FLAT_SPREAD_RATIO`] of the middle
 /// one) with the adaptive macro space off, on the interfaces of at least
-/// [`POLYNOMIAL_FACE_NODES`] nodes; 1 elsewhere. On the plates `cg` then
-/// takes 8–17 iterations where it took 15–33 (24² in 4 to 130² in 64),
-/// for the same time or up to 1.3× less. Smaller interfaces keep degree 1:
+/// [`POLYNOMIAL_FACE_NODES`] nodes; 1 elsewhere. Where the plates'
+/// interfaces get them (24² in 4, 48² and 65² in 4 and 16, 130² in 4–64
+/// subdomains) `cg` then takes 8–17 iterations where it took 15–33, for
+/// the same time or up to 1.3× less. Smaller interfaces keep degree 1:
 /// there the added columns make the coarse problem a large part of the
 /// interface (13 % of the 65² plate's dofs with 64 subdomains), and cg
 /// took 1.2–2.3× longer with them although its iterations fell 2–3×. On
-/// 3D towers the added columns
-/// cost more coarse work than they save; with the adaptive space
-/// (stiffness contrast) they broke `cg` down; and the stationary
-/// `multilevel` stops on a floor near 1.7e-12 with them on the bundled
-/// 8×8 grid (564 iterations to 1e-12 at degree 1), so it keeps 1.
+/// 3D towers the added columns cost more coarse work than they save; with
+/// the adaptive space (stiffness contrast) they broke `cg` down; and the
+/// stationary `multilevel` stops on a floor near 1.7e-12 with them on the
+/// bundled 8×8 grid (564 iterations to 1e-12 at degree 1), so it keeps 1.
 ///
 /// ```
 /// use nsdd::settings::MacroDegree;
