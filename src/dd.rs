@@ -995,7 +995,7 @@ impl DdSolver {
                         let (points, comp): (Vec<[f64; 3]>, Vec<usize>) = dofs.iter().map(|&d| dof_points[d]).unzip();
                         let degree = opts
                             .macro_degree
-                            .on_interface(degree, crate::coarse::distinct_points(&points));
+                            .on_interface(degree, || crate::coarse::distinct_points(&points));
                         highest_degree.fetch_max(degree, std::sync::atomic::Ordering::Relaxed);
                         if degree > 1 {
                             n_polynomial.fetch_add(1, std::sync::atomic::Ordering::Relaxed);

@@ -422,9 +422,9 @@ impl<'de> Deserialize<'de> for AdaptiveEdges {
 /// assert_eq!(MacroDegree::Auto.resolve(false, false, true), 1);
 /// assert_eq!(MacroDegree::Fixed(2).resolve(false, true, false), 2);
 /// // Small interfaces keep degree 1 under "auto", not when it is fixed.
-/// assert_eq!(MacroDegree::Auto.on_interface(3, 12), 1);
-/// assert_eq!(MacroDegree::Auto.on_interface(3, 40), 3);
-/// assert_eq!(MacroDegree::Fixed(3).on_interface(3, 12), 3);
+/// assert_eq!(MacroDegree::Auto.on_interface(3, || 12), 1);
+/// assert_eq!(MacroDegree::Auto.on_interface(3, || 40), 3);
+/// assert_eq!(MacroDegree::Fixed(3).on_interface(3, || 12), 3);
 /// ```
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum MacroDegree {
@@ -484,12 +484,14 @@ impl MacroDegree {
         }
     }
 
-    /// The degree of one interface of `nodes` nodes, `resolved` being what
-    /// [`Self::resolve`] gave: a fixed degree holds on every interface,
-    /// `Auto` keeps 1 on those smaller than [`POLYNOMIAL_FACE_NODES`].
-    pub fn on_interface(self, resolved: u8, nodes: usize) -> u8 {
+    /// The degree of one interface whose node count `nodes` gives,
+    /// `resolved` being what [`Self::resolve`] gave: a fixed degree holds on
+    /// every interface, `Auto` keeps 1 on those smaller than
+    /// [`POLYNOMIAL_FACE_NODES`]. `nodes` is only called where the count can
+    /// change the answer (`Auto` above degree 1).
+    pub fn on_interface(self, resolved: u8, nodes: impl FnOnce() -> usize) -> u8 {
         match self {
-            MacroDegree::Auto if nodes < POLYNOMIAL_FACE_NODES => 1,
+            MacroDegree::Auto if resolved > 1 && nodes() < POLYNOMIAL_FACE_NODES => 1,
             _ => resolved,
         }
     }
