@@ -667,8 +667,6 @@ impl DdSolver {
             .par_iter_mut()
             .zip(edge_rows.into_par_iter())
             .map(|(s, erows)| {
-                let n = s.op.n();
-                let (mut x, mut y) = (vec![0.0; n], vec![0.0; n]);
                 // Kept blocks of faces this set-up no longer has are dropped.
                 let mut earlier = s.face_blocks.as_mut().map(std::mem::take).unwrap_or_default();
                 // `parts`: the lengths of the pieces of `rows` whose blocks
@@ -680,16 +678,7 @@ impl DdSolver {
                     }
                     let Some(ip) = s.interior.as_mut() else {
                         // Lumped: the block of K_E.
-                        let mut b = Mat::<f64>::zeros(rows.len(), rows.len());
-                        for (k, &l) in rows.iter().enumerate() {
-                            x[l as usize] = 1.0;
-                            s.op.apply(&x, &mut y);
-                            x[l as usize] = 0.0;
-                            for (m, &g) in rows.iter().enumerate() {
-                                b[(m, k)] = y[g as usize];
-                            }
-                        }
-                        return (Vec::new(), b);
+                        return (Vec::new(), s.op.principal_block(&rows));
                     };
                     // A set-up that took this subdomain over may hold the
                     // block already.
