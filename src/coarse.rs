@@ -414,18 +414,10 @@ impl CoarseProblem {
             check_full_rank(na, &g_ptr, &g_row, &g_val, nf, kernel_owner, describe)?;
         }
 
-        // Exact L (symmetrised) and the augmented, regularised L_γ.
-        let mut exact = Vec::new();
-        for p in parts {
-            for (b, &cb) in p.cols.iter().enumerate() {
-                for (a, &ca) in p.cols.iter().enumerate() {
-                    if ca >= cb {
-                        exact.push((ca, cb, 0.5 * (p.l[(a, b)] + p.l[(b, a)])));
-                    }
-                }
-            }
-        }
-        let l_lower = lower_csc(nf, &exact).map_err(|e| Error::Numerical(format!("coarse operator: {e:?}")))?;
+        // Exact L (symmetrised) and the augmented, regularised L_γ, on one
+        // pattern.
+        let blocks = MacroBlocks::assemble(nf, parts);
+        let l_lower = blocks.matrix(blocks.exact.clone());
         let ldiag = lower_diagonal(&l_lower);
         if ldiag.iter().any(|v| !v.is_finite()) {
             return Err(Error::Numerical("the coarse operator is not finite".into()));
@@ -438,20 +430,8 @@ impl CoarseProblem {
             .map(|&d| 1.0 / d.max(1e-12 * lscale).max(f64::MIN_POSITIVE).sqrt())
             .collect();
         let gamma = lscale;
-        let mut aug = exact;
-        for p in parts {
-            // γ G_E G_Eᵀ on the subdomain's own columns: same pattern as L.
-            for (b, &cb) in p.cols.iter().enumerate() {
-                for (a, &ca) in p.cols.iter().enumerate() {
-                    if ca >= cb {
-                        let v: f64 = (0..p.g.ncols()).map(|q| p.g[(a, q)] * p.g[(b, q)]).sum();
-                        if v != 0.0 {
-                            aug.push((ca, cb, gamma * v));
-                        }
-                    }
-                }
-            }
-        }
+        // γ G_E G_Eᵀ on each subdomain's own columns: the pattern of L.
+        let aug = blocks.augmented(parts, gamma);
         // First the macro block unshifted: kept where it is clearly definite
         // (see [`EXACT_MIN_PIVOT`]). Otherwise the regularised block, with
         // the smallest floor first (most accurate) and a larger one when
@@ -460,14 +440,12 @@ impl CoarseProblem {
         let shifted_lower = |reg: f64, floor: f64| -> Result<SparseColMat<usize, f64>> {
             let mut shifted = aug.clone();
             if reg > 0.0 {
-                shifted.extend(
-                    ldiag
-                        .iter()
-                        .enumerate()
-                        .map(|(i, &d)| (i, i, reg * d.max(floor * lscale))),
-                );
+                for (j, &d) in ldiag.iter().enumerate() {
+                    // The diagonal is each column's first entry.
+                    shifted[blocks.col_ptr[j]] += reg * d.max(floor * lscale);
+                }
             }
-            lower_csc(nf, &shifted).map_err(|e| Error::Numerical(format!("coarse operator: {e:?}")))
+            Ok(blocks.matrix(shifted))
         };
         let unshifted = shifted_lower(0.0, 1.0)?;
         // Any factor of the unshifted block, clearly definite or not, holds
@@ -511,6 +489,7 @@ impl CoarseProblem {
             }
         }
         drop(aug);
+        drop(blocks);
         let mut factor = factor.ok_or_else(|| {
             Error::Numerical("the coarse problem could not be factored even with the largest regularisation".into())
         })?;
@@ -968,6 +947,112 @@ impl Krylov {
     }
 }
 
+/// The pattern of the macro block `L = Σ_E L_E` (lower triangle, by
+/// columns, rows increasing) with `L`'s values, and where each subdomain's
+/// pairs of columns sit in it. A macro column belongs to one interface,
+/// so to two subdomains' blocks: its rows are the union of their columns,
+/// found with a stamp per row and no sort of triplets. Summed in the
+/// subdomains' order.
+struct MacroBlocks {
+    n: usize,
+    col_ptr: Vec<usize>,
+    row_idx: Vec<usize>,
+    exact: Vec<f64>,
+    /// Per subdomain, the position of entry `(a, b)` of its block
+    /// (`a * m + b`) where `cols[a] >= cols[b]`, else `usize::MAX`.
+    at: Vec<Vec<usize>>,
+}
+
+impl MacroBlocks {
+    fn assemble(n: usize, parts: &[CoarseContribution]) -> MacroBlocks {
+        // The subdomains holding each column, with its local index there.
+        let mut holders: Vec<Vec<(usize, usize)>> = vec![Vec::new(); n];
+        for (p, part) in parts.iter().enumerate() {
+            for (a, &c) in part.cols.iter().enumerate() {
+                holders[c].push((p, a));
+            }
+        }
+        let mut at: Vec<Vec<usize>> = parts.iter().map(|p| vec![usize::MAX; p.cols.len().pow(2)]).collect();
+        let mut stamp = vec![usize::MAX; n];
+        let mut pos = vec![0usize; n];
+        let mut col_ptr = Vec::with_capacity(n + 1);
+        let mut row_idx = Vec::new();
+        let mut exact = Vec::new();
+        let mut rows = Vec::new();
+        col_ptr.push(0);
+        for j in 0..n {
+            // The diagonal even for a column no subdomain holds (zero).
+            rows.clear();
+            rows.push(j);
+            stamp[j] = j;
+            for &(p, _) in &holders[j] {
+                for &r in &parts[p].cols {
+                    if r >= j && stamp[r] != j {
+                        stamp[r] = j;
+                        rows.push(r);
+                    }
+                }
+            }
+            rows.sort_unstable();
+            let start = row_idx.len();
+            for (k, &r) in rows.iter().enumerate() {
+                pos[r] = start + k;
+            }
+            row_idx.extend_from_slice(&rows);
+            exact.resize(row_idx.len(), 0.0);
+            for &(p, b) in &holders[j] {
+                let part = &parts[p];
+                let m = part.cols.len();
+                for (a, &r) in part.cols.iter().enumerate() {
+                    if r >= j {
+                        exact[pos[r]] += 0.5 * (part.l[(a, b)] + part.l[(b, a)]);
+                        at[p][a * m + b] = pos[r];
+                    }
+                }
+            }
+            col_ptr.push(row_idx.len());
+        }
+        MacroBlocks {
+            n,
+            col_ptr,
+            row_idx,
+            exact,
+            at,
+        }
+    }
+
+    /// `L`'s values plus `γ G_E G_Eᵀ` of every subdomain on its pairs.
+    fn augmented(&self, parts: &[CoarseContribution], gamma: f64) -> Vec<f64> {
+        use rayon::prelude::*;
+        let grams: Vec<Mat<f64>> = parts.par_iter().map(|p| &p.g * p.g.transpose()).collect();
+        let mut aug = self.exact.clone();
+        for ((part, gg), at) in parts.iter().zip(&grams).zip(&self.at) {
+            let m = part.cols.len();
+            for b in 0..m {
+                for a in 0..m {
+                    let k = at[a * m + b];
+                    if k != usize::MAX {
+                        aug[k] += gamma * gg[(a, b)];
+                    }
+                }
+            }
+        }
+        aug
+    }
+
+    /// The lower triangle with `values` on this pattern.
+    fn matrix(&self, values: Vec<f64>) -> SparseColMat<usize, f64> {
+        let symbolic = faer::sparse::SymbolicSparseColMat::new_checked(
+            self.n,
+            self.n,
+            self.col_ptr.clone(),
+            None,
+            self.row_idx.clone(),
+        );
+        SparseColMat::new(symbolic, values)
+    }
+}
+
 /// The median of the positive diagonal entries: the scale of `L`. Not the
 /// largest: one soft subdomain mode (compliance 1e10 × the median on the
 /// 1e6-dof plate) would make `γ G Gᵀ` and the floors swamp everything else.
@@ -1173,6 +1258,63 @@ fn sparse_clearly_positive_definite(na: usize, rows: &[Vec<(usize, f64)>]) -> bo
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The assembled `L` and `L_γ` are the sums of the subdomains' blocks
+    /// scattered to their columns (unsorted), lower triangle by columns
+    /// with the diagonal first, including a column no subdomain holds.
+    #[test]
+    fn macro_blocks_are_the_scattered_sums_of_the_subdomains_blocks() {
+        let n = 7;
+        let block = |m: usize, s: f64| Mat::from_fn(m, m, |i, j| s * (1.0 + i as f64) + 0.25 * (i * j) as f64);
+        let parts = vec![
+            CoarseContribution {
+                cols: vec![4, 0, 2],
+                l: block(3, 1.0),
+                g: Mat::from_fn(3, 2, |i, j| (i + 2 * j) as f64 - 1.5),
+                alpha_off: 0,
+            },
+            CoarseContribution {
+                cols: vec![2, 5, 4, 1],
+                l: block(4, 3.0),
+                g: Mat::from_fn(4, 1, |i, _| 0.5 * i as f64),
+                alpha_off: 2,
+            },
+        ];
+        let gamma = 2.0;
+        let (mut l, mut aug) = (Mat::<f64>::zeros(n, n), Mat::<f64>::zeros(n, n));
+        for p in &parts {
+            let gg = &p.g * p.g.transpose();
+            for (a, &ca) in p.cols.iter().enumerate() {
+                for (b, &cb) in p.cols.iter().enumerate() {
+                    l[(ca, cb)] += 0.5 * (p.l[(a, b)] + p.l[(b, a)]);
+                    aug[(ca, cb)] += 0.5 * (p.l[(a, b)] + p.l[(b, a)]) + gamma * gg[(a, b)];
+                }
+            }
+        }
+        let blocks = MacroBlocks::assemble(n, &parts);
+        let got_l = blocks.matrix(blocks.exact.clone());
+        let got_aug = blocks.matrix(blocks.augmented(&parts, gamma));
+        for (got, want) in [(&got_l, &l), (&got_aug, &aug)] {
+            let a = got.as_ref();
+            let mut seen = 0;
+            for j in 0..n {
+                let rows: Vec<usize> = a.row_idx_of_col(j).collect();
+                assert_eq!(rows[0], j, "column {j} starts at its diagonal");
+                assert!(rows.windows(2).all(|w| w[0] < w[1]), "column {j}: {rows:?}");
+                for (i, &v) in a.row_idx_of_col(j).zip(a.val_of_col(j)) {
+                    assert!((v - want[(i, j)]).abs() <= 1e-14 * want.norm_max(), "({i}, {j})");
+                    seen += 1;
+                }
+            }
+            // Columns 3 and 6 (no subdomain) have their zero diagonal and
+            // nothing else;
+            // the pairs of columns no block shares (0 and 5, 0 and 1) are absent.
+            assert_eq!(a.row_idx_of_col(3).collect::<Vec<_>>(), vec![3]);
+            assert!(!a.row_idx_of_col(0).any(|i| i == 5 || i == 1));
+            assert_eq!(a.row_idx_of_col(6).collect::<Vec<_>>(), vec![6]);
+            assert_eq!(seen, 6 + 10 - 3 + 2);
+        }
+    }
 
     /// Rows of `G` for a chain of `k` subdomains with 3 kernel modes each,
     /// every interface holding 4 macro rows on the modes of its two sides.
