@@ -431,7 +431,7 @@ impl CoarseProblem {
             .collect();
         let gamma = lscale;
         // γ G_E G_Eᵀ on each subdomain's own columns: the pattern of L.
-        let aug = blocks.augmented(parts, gamma);
+        let aug = blocks.augmented(gamma);
         // First the macro block unshifted: kept where it is clearly definite
         // (see [`EXACT_MIN_PIVOT`]). Otherwise the regularised block, with
         // the smallest floor first (most accurate) and a larger one when
@@ -948,23 +948,23 @@ impl Krylov {
 }
 
 /// The pattern of the macro block `L = Σ_E L_E` (lower triangle, by
-/// columns, rows increasing) with `L`'s values, and where each subdomain's
-/// pairs of columns sit in it. A macro column belongs to one interface,
-/// so to two subdomains' blocks: its rows are the union of their columns,
-/// found with a stamp per row and no sort of triplets. Summed in the
-/// subdomains' order.
+/// columns, rows increasing) with the values of `L` and of `Σ_E G_E G_Eᵀ`
+/// on it (the augmentation has the pattern of `L`). A macro column belongs
+/// to one interface, so to two subdomains' blocks: its rows are the union
+/// of their columns, found with a stamp per row and no sort of triplets.
+/// Summed in the subdomains' order.
 struct MacroBlocks {
     n: usize,
     col_ptr: Vec<usize>,
     row_idx: Vec<usize>,
     exact: Vec<f64>,
-    /// Per subdomain, the position of entry `(a, b)` of its block
-    /// (`a * m + b`) where `cols[a] >= cols[b]`, else `usize::MAX`.
-    at: Vec<Vec<usize>>,
+    gram: Vec<f64>,
 }
 
 impl MacroBlocks {
     fn assemble(n: usize, parts: &[CoarseContribution]) -> MacroBlocks {
+        use rayon::prelude::*;
+        let grams: Vec<Mat<f64>> = parts.par_iter().map(|p| &p.g * p.g.transpose()).collect();
         // The subdomains holding each column, with its local index there.
         let mut holders: Vec<Vec<(usize, usize)>> = vec![Vec::new(); n];
         for (p, part) in parts.iter().enumerate() {
@@ -972,12 +972,11 @@ impl MacroBlocks {
                 holders[c].push((p, a));
             }
         }
-        let mut at: Vec<Vec<usize>> = parts.iter().map(|p| vec![usize::MAX; p.cols.len().pow(2)]).collect();
         let mut stamp = vec![usize::MAX; n];
         let mut pos = vec![0usize; n];
         let mut col_ptr = Vec::with_capacity(n + 1);
         let mut row_idx = Vec::new();
-        let mut exact = Vec::new();
+        let (mut exact, mut gram) = (Vec::new(), Vec::new());
         let mut rows = Vec::new();
         col_ptr.push(0);
         for j in 0..n {
@@ -1000,13 +999,13 @@ impl MacroBlocks {
             }
             row_idx.extend_from_slice(&rows);
             exact.resize(row_idx.len(), 0.0);
+            gram.resize(row_idx.len(), 0.0);
             for &(p, b) in &holders[j] {
-                let part = &parts[p];
-                let m = part.cols.len();
+                let (part, gg) = (&parts[p], &grams[p]);
                 for (a, &r) in part.cols.iter().enumerate() {
                     if r >= j {
                         exact[pos[r]] += 0.5 * (part.l[(a, b)] + part.l[(b, a)]);
-                        at[p][a * m + b] = pos[r];
+                        gram[pos[r]] += gg[(a, b)];
                     }
                 }
             }
@@ -1017,27 +1016,13 @@ impl MacroBlocks {
             col_ptr,
             row_idx,
             exact,
-            at,
+            gram,
         }
     }
 
-    /// `L`'s values plus `γ G_E G_Eᵀ` of every subdomain on its pairs.
-    fn augmented(&self, parts: &[CoarseContribution], gamma: f64) -> Vec<f64> {
-        use rayon::prelude::*;
-        let grams: Vec<Mat<f64>> = parts.par_iter().map(|p| &p.g * p.g.transpose()).collect();
-        let mut aug = self.exact.clone();
-        for ((part, gg), at) in parts.iter().zip(&grams).zip(&self.at) {
-            let m = part.cols.len();
-            for b in 0..m {
-                for a in 0..m {
-                    let k = at[a * m + b];
-                    if k != usize::MAX {
-                        aug[k] += gamma * gg[(a, b)];
-                    }
-                }
-            }
-        }
-        aug
+    /// The values of `L + γ Σ_E G_E G_Eᵀ`.
+    fn augmented(&self, gamma: f64) -> Vec<f64> {
+        self.exact.iter().zip(&self.gram).map(|(l, g)| l + gamma * g).collect()
     }
 
     /// The lower triangle with `values` on this pattern.
@@ -1293,7 +1278,7 @@ mod tests {
         }
         let blocks = MacroBlocks::assemble(n, &parts);
         let got_l = blocks.matrix(blocks.exact.clone());
-        let got_aug = blocks.matrix(blocks.augmented(&parts, gamma));
+        let got_aug = blocks.matrix(blocks.augmented(gamma));
         for (got, want) in [(&got_l, &l), (&got_aug, &aug)] {
             let a = got.as_ref();
             let mut seen = 0;
@@ -1307,8 +1292,8 @@ mod tests {
                 }
             }
             // Columns 3 and 6 (no subdomain) have their zero diagonal and
-            // nothing else;
-            // the pairs of columns no block shares (0 and 5, 0 and 1) are absent.
+            // nothing else; the pairs of columns no block shares (0 and 5,
+            // 0 and 1) are absent.
             assert_eq!(a.row_idx_of_col(3).collect::<Vec<_>>(), vec![3]);
             assert!(!a.row_idx_of_col(0).any(|i| i == 5 || i == 1));
             assert_eq!(a.row_idx_of_col(6).collect::<Vec<_>>(), vec![6]);
