@@ -1113,6 +1113,14 @@ const RANK_PIVOT_RATIO: f64 = 1e-8;
 const RANK_EIGEN_RATIO: f64 = 1e-10;
 const RANK_INVERSE_ITERATIONS: usize = 8;
 
+/// Power and inverse iterations of the estimate that decides the rank
+/// without an eigendecomposition where the tests above could not vouch
+/// for it, and the factor over [`RANK_RTOL`] above which its smallest
+/// eigenvalue (an upper bound) says full rank: between the two the
+/// eigendecomposition decides, as before.
+const RANK_ESTIMATE_ITERATIONS: usize = 12;
+const RANK_ESTIMATE_MARGIN: f64 = 1e3;
+
 /// Fails with a named subdomain when `G` has a (numerically) dependent
 /// column. `GᵀG` is formed row by row of `G`: a row holds the kernel modes
 /// of the two subdomains of one interface only.
@@ -1153,6 +1161,20 @@ fn check_full_rank(
     if crate::dense::clearly_positive_definite(&gtg, RANK_PIVOT_RATIO, RANK_EIGEN_RATIO, RANK_INVERSE_ITERATIONS)
         .is_some()
     {
+        return Ok(());
+    }
+    // Else the smallest eigenpair by inverse iteration; the
+    // eigendecomposition only where that estimate sits near the threshold.
+    let (lmax, lmin, v) = crate::dense::extreme_eigen_estimates(&gtg, RANK_RTOL, RANK_ESTIMATE_ITERATIONS);
+    if lmax == 0.0 || lmin <= RANK_RTOL * lmax {
+        let worst = (0..na).fold(0, |b, i| if v[i].abs() > v[b].abs() { i } else { b });
+        return Err(Error::Mechanism(format!(
+            "a rigid-body or mechanism mode of subdomain {} is not restrained by its interfaces{}: the structure is not supported well enough or is a mechanism",
+            owner.get(worst).copied().unwrap_or(0),
+            describe(&v)
+        )));
+    }
+    if lmin > RANK_ESTIMATE_MARGIN * RANK_RTOL * lmax {
         return Ok(());
     }
     let eig = gtg
