@@ -1121,6 +1121,24 @@ const RANK_INVERSE_ITERATIONS: usize = 8;
 const RANK_ESTIMATE_ITERATIONS: usize = 12;
 const RANK_ESTIMATE_MARGIN: f64 = 1e3;
 
+/// What an unrestrained kernel mode is called in [`Error::Mechanism`].
+const UNRESTRAINED: &str = "is not restrained by its interfaces";
+
+/// The error of a kernel mode of `subdomain` that no interface restrains
+/// (`where_` describes its largest motion): a mechanism of the whole
+/// structure, whatever the partition.
+pub(crate) fn unrestrained_mode(subdomain: usize, where_: &str) -> Error {
+    Error::Mechanism(format!(
+        "a rigid-body or mechanism mode of subdomain {subdomain} {UNRESTRAINED}{where_}: the structure is not supported well enough or is a mechanism"
+    ))
+}
+
+/// Whether `e` is the coarse set-up's [`unrestrained_mode`]: the structure
+/// itself is a mechanism, so another partition of it fails the same way.
+pub(crate) fn is_unrestrained_mode(e: &Error) -> bool {
+    matches!(e, Error::Mechanism(m) if m.contains(UNRESTRAINED))
+}
+
 /// Fails with a named subdomain when `G` has a (numerically) dependent
 /// column. `GᵀG` is formed row by row of `G`: a row holds the kernel modes
 /// of the two subdomains of one interface only.
@@ -1168,11 +1186,7 @@ fn check_full_rank(
     let (lmax, lmin, v) = crate::dense::extreme_eigen_estimates(&gtg, RANK_RTOL, RANK_ESTIMATE_ITERATIONS);
     if lmax == 0.0 || lmin <= RANK_RTOL * lmax {
         let worst = (0..na).fold(0, |b, i| if v[i].abs() > v[b].abs() { i } else { b });
-        return Err(Error::Mechanism(format!(
-            "a rigid-body or mechanism mode of subdomain {} is not restrained by its interfaces{}: the structure is not supported well enough or is a mechanism",
-            owner.get(worst).copied().unwrap_or(0),
-            describe(&v)
-        )));
+        return Err(unrestrained_mode(owner.get(worst).copied().unwrap_or(0), &describe(&v)));
     }
     if lmin > RANK_ESTIMATE_MARGIN * RANK_RTOL * lmax {
         return Ok(());
@@ -1186,11 +1200,10 @@ fn check_full_rank(
         let u = eig.U();
         let worst = (0..na).fold(0, |b, i| if u[(i, 0)].abs() > u[(b, 0)].abs() { i } else { b });
         let alpha: Vec<f64> = (0..na).map(|i| u[(i, 0)]).collect();
-        return Err(Error::Mechanism(format!(
-            "a rigid-body or mechanism mode of subdomain {} is not restrained by its interfaces{}: the structure is not supported well enough or is a mechanism",
+        return Err(unrestrained_mode(
             owner.get(worst).copied().unwrap_or(0),
-            describe(&alpha)
-        )));
+            &describe(&alpha),
+        ));
     }
     Ok(())
 }

@@ -74,15 +74,22 @@ pub const SOFT_FLOOR: f64 = 1e-4;
 
 /// Loosest inner tolerance (the first step, and steps after large
 /// violations): a set from a solve this accurate is close enough to guide
-/// the next one. Total inner iterations on the 32² grid to 1e-8 with
-/// 4/16/64 subdomains: 400/502/351 with 1e-3, 338/471/331 with 1e-2, and
-/// 422 (16 subdomains) with 1e-1; the outer steps stay at 12. A loose solve
-/// is not cheap: the CG's contraction-aware stopping test still asks for
-/// 25-40 iterations per step.
-pub const INNER_TOL_MAX: f64 = 1e-2;
+/// the next one. An outer step costs a DD set-up, worth 15-25 inner
+/// iterations on the grids (the 130² grid with 16 subdomains: 0.4-0.9 s
+/// against 0.03 s), so the tolerances are chosen for fewer steps rather
+/// than fewer iterations. With this and [`INNER_TOL_FACTOR`] at 1e-2 and
+/// 0.1 (before session 38), the strains of the loose steps were too
+/// inexact to decide the last few hundred cables: the 130² grid took 24 /
+/// 22 steps (16 / 64 subdomains) where the direct solver takes 16; at
+/// 1e-3 and 0.03 it takes 19 / 18 (BENCHMARKS.md, "Fewer active-set
+/// steps"). The early steps are capped anyway ([`EARLY_STOP_ITERATIONS`]),
+/// so their tighter tolerance costs few iterations.
+pub const INNER_TOL_MAX: f64 = 1e-3;
 
-/// Inner tolerance as a fraction of the last relative violation.
-pub const INNER_TOL_FACTOR: f64 = 0.1;
+/// Inner tolerance as a fraction of the last relative violation (see
+/// [`INNER_TOL_MAX`]; 0.01 took the same steps with 3-10 % more
+/// iterations).
+pub const INNER_TOL_FACTOR: f64 = 0.03;
 
 /// Backward error of the coarse solves as a fraction of the inner
 /// tolerance (the coarse problem clamps it at round-off, its default).
@@ -260,6 +267,10 @@ pub struct NonsmoothCg {
     plain_unusable: bool,
     /// Outer steps without progress before a solve stops ([`UNSETTLED_STEPS`]).
     unsettled_steps: usize,
+    /// Whether a set whose structure is a mechanism on one partition is
+    /// tried on the others too: only for a set that settled on a softened
+    /// step (see [`is_structural_mechanism`]).
+    retry_mechanisms: bool,
 }
 
 /// Operators of the previous set-up by [`OpKey`] while the next one is
@@ -425,6 +436,16 @@ fn set_failure(model: &Model, slack: &[bool], e: Error) -> Error {
     }
 }
 
+/// How [`reduced_problem`] names a free node whose elements are all slack.
+const HELD_BY_SLACK_CABLES: &str = "is held by slack cables only";
+
+/// Whether the set-up error `e` says that the structure without its slack
+/// cables is a mechanism whatever its partition: a free node held by slack
+/// cables only, or a kernel mode no interface restrains.
+fn is_structural_mechanism(e: &Error) -> bool {
+    crate::coarse::is_unrestrained_mode(e) || matches!(e, Error::Mechanism(m) if m.contains(HELD_BY_SLACK_CABLES))
+}
+
 /// The structure without its slack cables and its decomposition: the
 /// partition restricted to the remaining elements, weak nodes repaired.
 /// A node left without any element, or a subdomain left empty, is reported
@@ -456,7 +477,7 @@ fn reduced_problem(
         used[el.b] = true;
     }
     if let Some(n) = (0..used.len()).find(|&n| !used[n] && m.node_dofs[n].iter().any(|&d| d != FIXED)) {
-        return Err(Error::Mechanism(format!("node {n} is held by slack cables only")));
+        return Err(Error::Mechanism(format!("node {n} {HELD_BY_SLACK_CABLES}")));
     }
     let part: Vec<usize> = keep.iter().map(|&e| dec.partition.part_of[e]).collect();
     let mut partition =
@@ -509,6 +530,7 @@ impl NonsmoothCg {
             unrepaired_first: false,
             plain_unusable: false,
             unsettled_steps: UNSETTLED_STEPS,
+            retry_mechanisms: false,
         })
     }
 
@@ -633,10 +655,11 @@ impl NonsmoothCg {
             let mut found = None;
             let order = if unrepaired_first { [false, true] } else { [true, false] };
             for repair in order {
-                match reduced_problem(model, own, slack, repair).and_then(|(lin, dec, keep)| {
+                let rr = reduced_problem(model, own, slack, repair).and_then(|(lin, dec, keep)| {
                     let (dd, keys) = pool.setup(&lin, &dec, Some(&keep), &opts)?;
                     Ok((dd, dec, keys, keep))
-                }) {
+                });
+                match rr {
                     Ok((dd, dec, keys, keep)) => {
                         found = Some((dd, Some(dec), keys, Some(keep), repair));
                         break;
@@ -648,6 +671,15 @@ impl NonsmoothCg {
                                 "   the set-up on the {} partition failed: {e}",
                                 if repair { "repaired" } else { "plainly restricted" }
                             );
+                        }
+                        // The structure itself is a mechanism: the other
+                        // partitions would fail the same way after factoring
+                        // every subdomain again (4.5 s of a 6.6 s step of the
+                        // 130² grid with 64 subdomains). A set that settles
+                        // there is set up with every attempt before it is
+                        // called a mechanism (`retry_mechanisms`).
+                        if !self.retry_mechanisms && is_structural_mechanism(&e) {
+                            return Err(e);
                         }
                         first_err.get_or_insert(e);
                     }
@@ -700,6 +732,7 @@ impl NonsmoothCg {
         }
         let nc = model.cables.len();
         let tol = self.opts.tolerance;
+        self.retry_mechanisms = false;
         let mut slack = match &self.settled {
             Some(s) if s.len() == nc => s.clone(),
             _ => vec![false; nc],
@@ -932,6 +965,15 @@ impl NonsmoothCg {
                     continue;
                 }
                 if soft {
+                    if !self.retry_mechanisms && failure.as_ref().is_some_and(is_structural_mechanism) {
+                        // Its exact set-up stopped at the first partition
+                        // that found a mechanism: try them all before
+                        // calling the final set one.
+                        self.retry_mechanisms = true;
+                        self.current = None;
+                        violation = 0.0;
+                        continue;
+                    }
                     return Err(failure.take().expect("a softened step follows a failed set-up"));
                 }
                 let mut elongations = self.local_elongations(model, &u);
@@ -1088,6 +1130,30 @@ fn violations<'a>(g: &'a [f64], slack: &'a [bool], thr: f64) -> impl Iterator<It
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The errors that stop a set's set-up at its first partition are the
+    /// structure's own mechanisms, also once wrapped as the step's failure;
+    /// an indefinite subdomain (which another partition may avoid) is not.
+    #[test]
+    fn structural_mechanisms_are_told_from_indefinite_subdomains() {
+        let coarse = crate::coarse::unrestrained_mode(3, " (largest motion at node 7, component x)");
+        let node = Error::Mechanism(format!("node 12 {HELD_BY_SLACK_CABLES}"));
+        let indefinite = Error::IndefiniteSubdomain {
+            subdomain: 2,
+            message: "stiffness matrix is indefinite".into(),
+        };
+        let other = Error::Mechanism("a subdomain has slack cables only".into());
+        assert!(is_structural_mechanism(&coarse));
+        assert!(is_structural_mechanism(&node));
+        assert!(!is_structural_mechanism(&indefinite));
+        assert!(!is_structural_mechanism(&other));
+        // As `set_failure` words the step's failure.
+        let scene = crate::generate::grid(&crate::generate::GridParams::default());
+        let model = Model::from_scene(&scene).unwrap();
+        let slack = vec![true; model.cables.len()];
+        assert!(is_structural_mechanism(&set_failure(&model, &slack, coarse)));
+        assert!(!is_structural_mechanism(&set_failure(&model, &slack, indefinite)));
+    }
 
     /// Progress is a new fewest count below 0.9 × the last one; the solve
     /// ends `window` steps after the last progress, however the counts
