@@ -10,6 +10,10 @@
 //! structure is a mechanism is stepped through with its slack cables
 //! softened to [`SOFT`] of their stiffness (a guide step, as the direct
 //! solver does); a final set that is one is a named [`Error::Mechanism`].
+//! Such a set's set-up stops at the first partition that finds the
+//! mechanism (it is the structure's, so every partition has it); a set
+//! that settles on its softened step is tried on all of them before it
+//! is named.
 //!
 //! The inner solves are inexact: their tolerance follows the size of the
 //! last complementarity violation (loose while the set moves, the
