@@ -85,7 +85,7 @@ pub const SOFT_FLOOR: f64 = 1e-4;
 /// 0.1 (before session 38), the strains of the loose steps were too
 /// inexact to decide the last few hundred cables: the 130² grid took 24 /
 /// 22 steps (16 / 64 subdomains) where the direct solver takes 16; at
-/// 1e-3 and 0.03 it takes 19 / 18 (BENCHMARKS.md, "Fewer active-set
+/// 1e-3 and 0.03 it takes 18 / 18 (BENCHMARKS.md, "Fewer active-set
 /// steps"). The early steps are capped anyway ([`EARLY_STOP_ITERATIONS`]),
 /// so their tighter tolerance costs few iterations.
 pub const INNER_TOL_MAX: f64 = 1e-3;
