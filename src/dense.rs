@@ -32,18 +32,25 @@ pub(crate) fn clearly_positive_definite(
         return None;
     }
     let trace: f64 = (0..n).map(|k| a[(k, k)]).sum();
-    let start = inverse_iteration_start(n);
-    let mut x = Mat::<f64>::from_fn(n, 1, |i, _| start[i]);
-    for _ in 0..steps {
-        let norm = x.norm_l2();
-        if !(norm > 0.0) || !norm.is_finite() {
-            return None;
-        }
-        x = llt.solve(&x * faer::Scale(1.0 / norm));
-    }
-    let x = &x * faer::Scale(1.0 / x.norm_l2());
+    let x = iterate(n, steps, |x| llt.solve(x))?;
     let rayleigh = (x.transpose() * a * &x)[(0, 0)];
     (rayleigh > eigen_ratio * trace).then_some(llt)
+}
+
+/// `steps` applications of `op` to the normalised iterate, from the fixed
+/// start of [`inverse_iteration_start`]; the last iterate normalised, or
+/// `None` once one vanishes or overflows.
+fn iterate(n: usize, steps: usize, op: impl Fn(Mat<f64>) -> Mat<f64>) -> Option<Mat<f64>> {
+    let start = inverse_iteration_start(n);
+    let normalised = |x: &Mat<f64>| {
+        let norm = x.norm_l2();
+        (norm > 0.0 && norm.is_finite()).then(|| x * faer::Scale(1.0 / norm))
+    };
+    let mut x = Mat::<f64>::from_fn(n, 1, |i, _| start[i]);
+    for _ in 0..steps {
+        x = op(normalised(&x)?);
+    }
+    normalised(&x)
 }
 
 /// Estimates of the largest eigenvalue of the symmetric positive
@@ -63,43 +70,16 @@ pub(crate) fn clearly_positive_definite(
 /// [`inverse_iteration_start`]: the same matrix takes the same path.
 pub(crate) fn extreme_eigen_estimates(a: &Mat<f64>, shift: f64, steps: usize) -> (f64, f64, Vec<f64>) {
     let n = a.nrows();
-    let start = inverse_iteration_start(n);
-    let rayleigh = |x: &Mat<f64>| {
-        let nx = x.norm_l2();
-        let x = x * faer::Scale(1.0 / nx);
-        ((x.transpose() * a * &x)[(0, 0)], x)
-    };
+    let rayleigh = |x: &Mat<f64>| (x.transpose() * a * x)[(0, 0)];
     let diag_max = (0..n).map(|k| a[(k, k)]).fold(0.0f64, f64::max);
-    let mut x = Mat::<f64>::from_fn(n, 1, |i, _| start[i]);
-    for _ in 0..steps {
-        let nx = x.norm_l2();
-        if !(nx > 0.0) || !nx.is_finite() {
-            break;
-        }
-        x = a * (&x * faer::Scale(1.0 / nx));
-    }
-    let lmax = if x.norm_l2() > 0.0 && x.norm_l2().is_finite() {
-        rayleigh(&x).0.max(diag_max)
-    } else {
-        diag_max
-    };
+    let lmax = iterate(n, steps, |x| a * x).map_or(diag_max, |x| rayleigh(&x).max(diag_max));
     let sigma = shift * lmax;
     let shifted = Mat::<f64>::from_fn(n, n, |i, j| a[(i, j)] + if i == j { sigma } else { 0.0 });
     let lblt = shifted.lblt(faer::Side::Lower);
-    let mut y = Mat::<f64>::from_fn(n, 1, |i, _| start[i]);
-    for _ in 0..steps {
-        let ny = y.norm_l2();
-        if !(ny > 0.0) || !ny.is_finite() {
-            return (lmax, 0.0, start);
-        }
-        y = lblt.solve(&y * faer::Scale(1.0 / ny));
+    match iterate(n, steps, |y| lblt.solve(y)) {
+        Some(y) => (lmax, rayleigh(&y).max(0.0), (0..n).map(|i| y[(i, 0)]).collect()),
+        None => (lmax, 0.0, inverse_iteration_start(n)),
     }
-    let ny = y.norm_l2();
-    if !(ny > 0.0) || !ny.is_finite() {
-        return (lmax, 0.0, start);
-    }
-    let (lmin, y) = rayleigh(&y);
-    (lmax, lmin.max(0.0), (0..n).map(|i| y[(i, 0)]).collect())
 }
 
 /// The fixed pseudo-random start of the inverse iterations that vouch for
