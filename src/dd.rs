@@ -39,6 +39,7 @@ use crate::settings::{
 use crate::subdomain::{InteriorProblem, SubdomainOperator};
 use faer::Mat;
 use rayon::prelude::*;
+use std::collections::HashMap;
 use std::time::Instant;
 
 /// Settings of the iterative methods: [`SolverSettings`] with the method
@@ -378,6 +379,49 @@ pub(crate) struct CoarseBlocks {
     g: Mat<f64>,
 }
 
+/// Copies into `z` (column-major, `n` rows per column) the column of
+/// `z_old` kept for each column of `w` equal bit for bit to a column of
+/// `w_old` (the interface rows of `W_E`, same rows), and returns the
+/// columns left to solve, in increasing order. Set-up only (allocates).
+fn take_unchanged_columns(w_old: &Mat<f64>, z_old: &Mat<f64>, w: &Mat<f64>, z: &mut [f64]) -> Vec<usize> {
+    let n = z_old.nrows();
+    let bits = |m: &Mat<f64>, j: usize| -> Vec<u64> { m.col(j).iter().map(|v| v.to_bits()).collect() };
+    let old: HashMap<Vec<u64>, usize> = (0..w_old.ncols()).map(|j| (bits(w_old, j), j)).collect();
+    let mut fresh = Vec::new();
+    for j in 0..w.ncols() {
+        match old.get(&bits(w, j)) {
+            Some(&o) => {
+                for (dst, src) in z[j * n..(j + 1) * n].iter_mut().zip(z_old.col(o).iter()) {
+                    *dst = *src;
+                }
+            }
+            None => fresh.push(j),
+        }
+    }
+    fresh
+}
+
+/// `K_E⁺` applied to the columns `cols` of `z` (column-major, `n` rows per
+/// column), the others left as they are; one batched solve.
+fn solve_some_columns(op: &mut SubdomainOperator, z: &mut [f64], n: usize, cols: &[usize]) {
+    let m = z.len() / n.max(1);
+    if cols.len() == m {
+        op.solve_columns(z, m);
+        return;
+    }
+    if cols.is_empty() {
+        return;
+    }
+    let mut block = vec![0.0; n * cols.len()];
+    for (c, &j) in cols.iter().enumerate() {
+        block[c * n..(c + 1) * n].copy_from_slice(&z[j * n..(j + 1) * n]);
+    }
+    op.solve_columns(&mut block, cols.len());
+    for (c, &j) in cols.iter().enumerate() {
+        z[j * n..(j + 1) * n].copy_from_slice(&block[c * n..(c + 1) * n]);
+    }
+}
+
 /// A Schur-complement face block `S_E[rows, rows]` and its rows.
 pub(crate) type FaceBlock = (Vec<u32>, Mat<f64>);
 
@@ -480,6 +524,10 @@ pub struct DdStats {
     /// from the previous set-up: same operator and same macro columns on
     /// their interfaces, so no multi-RHS solve.
     pub coarse_blocks_reused: usize,
+    /// Columns of `Z_E = K_E⁺ W_E` taken over in the other subdomains with
+    /// the same operator: their column of `W_E` did not change (a
+    /// neighbour's new kernel changes only the columns they share).
+    pub coarse_columns_reused: usize,
     /// Deluxe blocks (a face's, or one edge's) computed from the interior
     /// near them only (the default `economic_deluxe` scaling, on large
     /// faces); the others are exact.
@@ -1202,6 +1250,7 @@ impl DdSolver {
         // Coarse operator from one batched multi-RHS solve per subdomain.
         let mut coarse = None;
         let reused_blocks = std::sync::atomic::AtomicUsize::new(0);
+        let reused_columns = std::sync::atomic::AtomicUsize::new(0);
         if use_coarse {
             let local_parts: Vec<CoarseContribution> = subs
                 .par_iter_mut()
@@ -1242,9 +1291,24 @@ impl DdSolver {
                             reused_blocks.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
                             (b.l, b.g)
                         }
-                        _ => {
+                        kept => {
                             let mut z = w.clone();
-                            st.op.solve_columns(&mut z, m);
+                            // The same operator (the blocks are pooled with
+                            // it) and rows: a column of `W_E` kept bit for
+                            // bit keeps its column of `Z_E = K_E⁺ W_E`. A
+                            // neighbour's new kernel changes the columns of
+                            // the interface they share, not the others.
+                            let old =
+                                kept.filter(|b| b.rows == *rows && st.z.nrows() == n && st.z.ncols() == b.w.ncols());
+                            let fresh = match old {
+                                Some(b) => {
+                                    let taken = take_unchanged_columns(&b.w, &st.z, &wi, &mut z);
+                                    reused_columns.fetch_add(m - taken.len(), std::sync::atomic::Ordering::Relaxed);
+                                    taken
+                                }
+                                None => (0..m).collect(),
+                            };
+                            solve_some_columns(&mut st.op, &mut z, n, &fresh);
                             let zi = Mat::from_fn(rows.len(), m, |i, j| z[j * n + rows[i] as usize]);
                             let kernel = st.op.kernel();
                             let ri = Mat::from_fn(rows.len(), kernel.ncols(), |i, j| kernel[(rows[i] as usize, j)]);
@@ -1339,6 +1403,7 @@ impl DdSolver {
             interiors_reused: 0,
             face_blocks_reused: 0,
             coarse_blocks_reused: reused_blocks.into_inner(),
+            coarse_columns_reused: reused_columns.into_inner(),
             near_blocks: 0,
             coarse_s: if use_coarse {
                 t_coarse.elapsed().as_secs_f64() - adaptive_s
@@ -2130,6 +2195,9 @@ mod tests {
         let mut again = DdSolver::new_pooled(&model, &dec, opts.clone(), pooled, Placement::Process).unwrap();
         let kept = again.stats.coarse_blocks_reused;
         assert!(kept < dec.len(), "{kept} of {} subdomains kept stale blocks", dec.len());
+        // The enriched subdomains keep `K⁺ W` for the columns that did not
+        // change and solve for the others.
+        assert!(again.stats.coarse_columns_reused > 0);
         let a = fresh.solve(&f, false, None).unwrap();
         let b = again.solve(&f, false, None).unwrap();
         assert_eq!(a.status, Status::Converged);
@@ -2152,7 +2220,33 @@ mod tests {
             .collect();
         let mut third = DdSolver::new_pooled(&model, &dec, opts, pooled, Placement::Process).unwrap();
         assert_eq!(third.stats.coarse_blocks_reused, 0);
+        assert_eq!(third.stats.coarse_columns_reused, 0);
         let c = third.solve(&f, false, None).unwrap();
         assert!(a.u.iter().zip(&c.u).all(|(x, y)| x.to_bits() == y.to_bits()));
+    }
+
+    /// Only columns equal bit for bit keep their `Z` column, wherever they
+    /// moved; a column that differs in one entry (or only in the sign of
+    /// zero) is left to solve.
+    #[test]
+    fn unchanged_columns_keep_their_solution_wherever_they_moved() {
+        let w_old = Mat::from_fn(3, 3, |i, j| (i + 3 * j) as f64 + 1.0);
+        let z_old = Mat::from_fn(5, 3, |i, j| 100.0 * j as f64 + i as f64);
+        // New columns: old 2, old 0 changed in one entry, old 1, and zeros.
+        let mut w = Mat::zeros(3, 4);
+        w.col_mut(0).copy_from(w_old.col(2));
+        w.col_mut(1).copy_from(w_old.col(0));
+        w[(1, 1)] += 1e-15;
+        w.col_mut(2).copy_from(w_old.col(1));
+        let mut z = vec![-1.0; 5 * 4];
+        let fresh = take_unchanged_columns(&w_old, &z_old, &w, &mut z);
+        assert_eq!(fresh, vec![1, 3]);
+        assert_eq!(&z[0..5], &[200.0, 201.0, 202.0, 203.0, 204.0]);
+        assert_eq!(&z[10..15], &[100.0, 101.0, 102.0, 103.0, 104.0]);
+        assert!(z[5..10].iter().chain(&z[15..20]).all(|&v| v == -1.0));
+        let zero = Mat::<f64>::zeros(3, 1);
+        let neg = Mat::from_fn(3, 1, |_, _| -0.0);
+        let mut z1 = vec![0.0; 5];
+        assert_eq!(take_unchanged_columns(&zero, &Mat::zeros(5, 1), &neg, &mut z1), vec![0]);
     }
 }

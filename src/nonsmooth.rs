@@ -918,7 +918,7 @@ impl NonsmoothCg {
                 );
                 let st = self.current.as_ref().unwrap().dd.stats();
                 eprintln!(
-                    "   kernel {} macro {} nnz_l {} factor {:.3}s coarse {:.3}s interior {:.3}s scaling {:.3}s; subdomains factored {} reused {} (interiors {}, face blocks {}, coarse blocks {}) so far",
+                    "   kernel {} macro {} nnz_l {} factor {:.3}s coarse {:.3}s interior {:.3}s scaling {:.3}s; subdomains factored {} reused {} (interiors {}, face blocks {}, coarse blocks {}) so far; {} coarse columns kept",
                     st.kernel_unknowns,
                     st.macro_unknowns,
                     st.nnz_l,
@@ -930,7 +930,8 @@ impl NonsmoothCg {
                     self.pool.reused,
                     self.pool.interiors_reused,
                     self.pool.face_blocks_reused,
-                    self.pool.coarse_blocks_reused
+                    self.pool.coarse_blocks_reused,
+                    st.coarse_columns_reused
                 );
                 // How the flips spread over the subdomains (of the user's
                 // partition): what a low-rank update of each factor would
