@@ -17,9 +17,10 @@
 //!
 //! The inner solves are inexact: their tolerance follows the size of the
 //! last complementarity violation (loose while the set moves, the
-//! requested tolerance once it has settled, and from the first solve at
-//! that tolerance on), and each starts from the interface forces of the
-//! previous one. A loose solve stops on its indicator alone; the set is
+//! requested tolerance once it has settled, from the first solve at that
+//! tolerance on, and once a step flips at most [`ENDGAME_FLIPS`] of the
+//! cables), and each starts from the interface forces of the previous
+//! one. A loose solve stops on its indicator alone; the set is
 //! accepted only after a certified solve to the requested tolerance
 //! leaves it unchanged. A set that stops settling ([`UNSETTLED_STEPS`]
 //! steps without cutting the fewest flips by a tenth) ends the solve
@@ -99,9 +100,11 @@ pub const INNER_TOL_FACTOR: f64 = 0.03;
 /// solved at the requested tolerance. The active set then is in the tail
 /// the direct solver has too (halving the flips at each step); with loose
 /// strains the cables near zero strain were decided again and again: the
-/// nonsmooth 200² grid with 64 subdomains took 31 steps where the direct
-/// solver takes 20, 25 with this, in 5 % less time (BENCHMARKS.md,
-/// "Exact steps in the active set's tail").
+/// nonsmooth 410² grid (1e6 dofs) with 64 subdomains took 60 steps where
+/// the direct solver takes 29, 40 with this and 15 % less time; the 32² to
+/// 200² grids one to seven steps fewer, up to 40 % more iterations and the
+/// same time within the runs' spread (BENCHMARKS.md, "exact steps in the
+/// active set's tail").
 pub const ENDGAME_FLIPS: f64 = 1e-3;
 
 /// Backward error of the coarse solves as a fraction of the inner
