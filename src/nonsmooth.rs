@@ -935,7 +935,7 @@ impl NonsmoothCg {
                 );
                 let st = self.current.as_ref().unwrap().dd.stats();
                 eprintln!(
-                    "   kernel {} macro {} nnz_l {} factor {:.3}s coarse {:.3}s interior {:.3}s scaling {:.3}s; subdomains factored {} reused {} (interiors {}, face blocks {}, coarse blocks {}) so far; {} coarse columns kept",
+                    "   kernel {} macro {} nnz_l {} factor {:.3}s coarse {:.3}s interior {:.3}s scaling {:.3}s; subdomains factored {} reused {} (interiors {}, face blocks {}, coarse blocks {}) so far; this set-up kept {} coarse columns",
                     st.kernel_unknowns,
                     st.macro_unknowns,
                     st.nnz_l,
