@@ -164,6 +164,10 @@ pub struct DdProfile {
     pub interior_substitution_s: f64,
     /// `iteration_s / substitution_s` (target ≤ 1.5).
     pub ratio: f64,
+    /// One solve of the coarse problem (on the right-hand side of the last
+    /// iteration's), sequential as in the iteration: part of
+    /// `iteration_s`. 0 without a coarse problem.
+    pub coarse_solve_s: f64,
 }
 
 /// Measures per-iteration time of `method` (multilevel or cg) against the
@@ -224,6 +228,20 @@ pub fn dd_profile(scene: &Scene, subdomains: usize, iterations: usize, method: M
         };
         (interior, dd.substitution_time(10) + interior)
     });
+    let coarse_solve_s = match dd.coarse_problem_mut() {
+        Some(cp) => {
+            let mut best = f64::INFINITY;
+            for _ in 0..TIMING_REPEATS {
+                let t = Instant::now();
+                for _ in 0..10 {
+                    cp.solve();
+                }
+                best = best.min(t.elapsed().as_secs_f64() / 10.0);
+            }
+            best
+        }
+        None => 0.0,
+    };
     let ns = dd.n_subdomains();
     let stats = dd.stats();
     Ok(DdProfile {
@@ -242,5 +260,6 @@ pub fn dd_profile(scene: &Scene, subdomains: usize, iterations: usize, method: M
         substitution_s,
         interior_substitution_s,
         ratio: iteration_s / substitution_s.max(1e-12),
+        coarse_solve_s,
     })
 }

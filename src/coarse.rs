@@ -230,7 +230,9 @@ pub struct CoarseContribution {
 ///   system, preconditioned by this factorization, removes the
 ///   perturbation (one cycle of a few iterations in practice);
 /// - `S = Gᵀ L_γ⁻¹ G` is small (one row per kernel mode) and kept as a dense
-///   inverse.
+///   inverse. It is formed as `Bᵀ B` from `B = L⁻¹ P G` (`L_γ = Pᵀ L Lᵀ
+///   P`): forward substitutions only, whose columns stay sparse, and `B`
+///   is kept for the solves.
 ///
 /// Every solve is allocation free.
 pub struct CoarseProblem {
@@ -247,11 +249,11 @@ pub struct CoarseProblem {
     gamma: f64,
     factor: SparseCholesky,
     s_inv: Mat<f64>,
-    /// `L_γ⁻¹ G` (`n_macro × n_kernel`), the set-up's solves for `S` kept
-    /// where a product with it costs less than a solve with the factor
-    /// ([`keeps_kernel_solves`]): each inner solve then takes one solve with
-    /// the factor instead of two. Empty otherwise.
-    lg: Mat<f64>,
+    /// `B = L⁻¹ P G` (forward-substituted kernel columns, sparse), kept
+    /// from the set-up where it fits ([`MAX_KERNEL_COLUMN_VALUES`]): an
+    /// inner solve is then one forward and one backward substitution and
+    /// two products with `B`, instead of two solves.
+    kernel_columns: Option<KernelColumns>,
     /// Right-hand side `[a; b]`, written by the caller before [`CoarseProblem::solve`].
     pub rhs: Vec<f64>,
     /// Solution `[f; α]` after [`CoarseProblem::solve`].
@@ -344,7 +346,7 @@ const EXACT_MIN_PIVOT: f64 = 1e-8;
 /// plate with 16 subdomains needed 1e-4.) The last floor is a uniform
 /// shift; GMRES then does the rest.
 const REGULARIZATION_FLOORS: &[f64] = &[1e-8, 1e-6, 1e-4, 1e-2, 1.0];
-/// Columns per batched solve when forming `L_γ⁻¹ G`.
+/// Columns per batched solve when forming `B = L⁻¹ P G` (or `L_γ⁻¹ G`).
 const SCHUR_BATCH: usize = 32;
 
 impl CoarseProblem {
@@ -494,61 +496,19 @@ impl CoarseProblem {
             Error::Numerical("the coarse problem could not be factored even with the largest regularisation".into())
         })?;
 
-        // S = Gᵀ L_γ⁻¹ G, in batches of columns, the batches split between
-        // two solvers (the factor and a copy of it) on the rayon pool: with
-        // 1 600 kernel modes on the 30³ tower this was 2.3 s of each set-up.
-        // Every batch is solved as it would be alone, so S has the same bits
-        // whatever the split.
-        let starts: Vec<usize> = (0..na).step_by(SCHUR_BATCH).collect();
-        let keep = keeps_kernel_solves(nf, na, factor.nnz_l());
-        let schur_columns = |solver: &mut SparseCholesky, starts: &[usize]| -> (Vec<f64>, Vec<f64>) {
-            let mut cols = Vec::with_capacity(starts.len() * SCHUR_BATCH * na);
-            let mut kept = Vec::with_capacity(if keep { starts.len() * SCHUR_BATCH * nf } else { 0 });
-            let mut block = vec![0.0; nf * SCHUR_BATCH];
-            for &j0 in starts {
-                let w = (na - j0).min(SCHUR_BATCH);
-                let blk = &mut block[..nf * w];
-                blk.iter_mut().for_each(|v| *v = 0.0);
-                for c in 0..w {
-                    let j = j0 + c;
-                    for k in g_ptr[j]..g_ptr[j + 1] {
-                        blk[c * nf + g_row[k]] = g_val[k];
-                    }
-                }
-                solver.solve_columns(blk, w);
-                for c in 0..w {
-                    let y = &blk[c * nf..(c + 1) * nf];
-                    cols.extend((0..na).map(|i| (g_ptr[i]..g_ptr[i + 1]).map(|k| g_val[k] * y[g_row[k]]).sum::<f64>()));
-                }
-                if keep {
-                    kept.extend_from_slice(blk);
-                }
-            }
-            (cols, kept)
-        };
-        let half = starts.len() / 2;
-        let mut twin = if half > 0 { factor.solver_copy().ok() } else { None };
-        let (cols, kept) = match twin.as_mut() {
-            Some(twin) => {
-                let ((mut a, mut ka), (b, kb)) = rayon::join(
-                    || schur_columns(&mut factor, &starts[..half]),
-                    || schur_columns(twin, &starts[half..]),
-                );
-                a.extend(b);
-                ka.extend(kb);
-                (a, ka)
-            }
-            None => schur_columns(&mut factor, &starts),
-        };
-        drop(twin);
-        let s = Mat::from_fn(na, na, |i, j| cols[j * na + i]);
-        drop(cols);
-        let lg = if keep {
-            Mat::from_fn(nf, na, |i, j| kept[j * nf + i])
+        // S = Gᵀ L_γ⁻¹ G = Bᵀ B with B = L⁻¹ P G: forward substitutions
+        // only, which keep G's sparsity (a column is nonzero only where the
+        // elimination tree reaches from its rows), and B is kept for the
+        // inner solves. Where B would not fit, S from full solves instead.
+        let kernel_columns = if na > 0 {
+            KernelColumns::forward(&mut factor, nf, na, &g_ptr, &g_row, &g_val, MAX_KERNEL_COLUMN_VALUES)
         } else {
-            Mat::zeros(0, 0)
+            None
         };
-        drop(kept);
+        let s = match &kernel_columns {
+            Some(b) => b.gram(na),
+            None => schur_by_solves(&mut factor, nf, na, &g_ptr, &g_row, &g_val),
+        };
         let s_inv = if na > 0 {
             let sym = Mat::from_fn(na, na, |i, j| 0.5 * (s[(i, j)] + s[(j, i)]));
             let llt = sym
@@ -572,7 +532,7 @@ impl CoarseProblem {
             gamma,
             factor,
             s_inv,
-            lg,
+            kernel_columns,
             rhs: vec![0.0; n],
             solution: vec![0.0; n],
             residual: vec![0.0; n],
@@ -798,40 +758,53 @@ impl CoarseProblem {
         let nf = self.n_macro;
         let (a, b) = rhs.split_at(nf);
         let (f, alpha) = out.split_at_mut(nf);
-        // y = L_γ⁻¹ (a + γ G b)
+        // c = a + γ G b
         g_mul_into(&self.g_ptr, &self.g_row, &self.g_val, b, &mut self.work_f);
         for i in 0..nf {
             f[i] = a[i] + self.gamma * self.work_f[i];
         }
+        // With L_γ = Pᵀ L Lᵀ P: y = L_γ⁻¹ c, α = S⁻¹ (b − Gᵀ y), f = y +
+        // L_γ⁻¹ G α. With B = L⁻¹ P G kept: w = L⁻¹ P c, Gᵀ y = Bᵀ w, f =
+        // Pᵀ L⁻ᵀ (w + B α).
+        if let Some(bc) = &self.kernel_columns {
+            self.factor.forward_columns(f, 1);
+            bc.transpose_mul(f, &mut self.work_a);
+            for (w, &bi) in self.work_a.iter_mut().zip(b) {
+                *w = bi - *w;
+            }
+            gemv(&self.s_inv, &self.work_a, alpha);
+            bc.mul_add(alpha, f);
+            self.factor.backward_columns(f, 1);
+            return;
+        }
         self.factor.solve_in_place(f);
-        // α = S⁻¹ (b − Gᵀ y)
         gt_mul_into(&self.g_ptr, &self.g_row, &self.g_val, f, &mut self.work_a);
         for (w, &bi) in self.work_a.iter_mut().zip(b) {
             *w = bi - *w;
         }
         gemv(&self.s_inv, &self.work_a, alpha);
-        // f = y + L_γ⁻¹ G α
-        if self.lg.ncols() == alpha.len() && self.lg.nrows() == nf {
-            gemv(&self.lg, alpha, &mut self.work_f2);
-        } else {
-            g_mul_into(&self.g_ptr, &self.g_row, &self.g_val, alpha, &mut self.work_f2);
-            self.factor.solve_in_place(&mut self.work_f2);
-        }
+        g_mul_into(&self.g_ptr, &self.g_row, &self.g_val, alpha, &mut self.work_f2);
+        self.factor.solve_in_place(&mut self.work_f2);
         for (fi, &w) in f.iter_mut().zip(&self.work_f2) {
             *fi += w;
         }
     }
 
-    /// Drops the kept `L_γ⁻¹ G`, so that inner solves take the second solve
+    /// Drops the kept `B = L⁻¹ P G`, so that inner solves take two solves
     /// with the factor (tests compare the two routes).
     #[doc(hidden)]
     pub fn forget_kernel_solves(&mut self) {
-        self.lg = Mat::zeros(0, 0);
+        self.kernel_columns = None;
     }
 
-    /// Whether the set-up kept `L_γ⁻¹ G` ([`keeps_kernel_solves`]).
+    /// Whether the set-up kept `B = L⁻¹ P G` (see [`MAX_KERNEL_COLUMN_VALUES`]).
     pub fn kernel_solves_kept(&self) -> bool {
-        self.lg.ncols() > 0
+        self.kernel_columns.is_some()
+    }
+
+    /// Stored values of the kept `B = L⁻¹ P G` (0 if not kept).
+    pub fn nnz_kernel_columns(&self) -> usize {
+        self.kernel_columns.as_ref().map_or(0, |b| b.val.len())
     }
 
     /// The operator `L` as a dense matrix (for tests on small cases).
@@ -1067,20 +1040,256 @@ fn gt_mul_into(ptr: &[usize], row: &[usize], val: &[f64], x: &[f64], y: &mut [f6
     }
 }
 
-/// Most values of `L_γ⁻¹ G` a coarse problem keeps (128 MB; twice that
-/// for a moment at set-up, while the batches become the matrix).
-const MAX_KERNEL_SOLVES: usize = 1 << 24;
+/// Most stored values of `B = L⁻¹ P G` a coarse problem keeps (16 M, about
+/// 200 MB with their row indices; twice that for a moment at set-up).
+/// Beyond it `S` comes from full solves ([`schur_by_solves`]) and each
+/// inner solve takes two solves with the factor.
+pub const MAX_KERNEL_COLUMN_VALUES: usize = 1 << 24;
 
-/// Whether a coarse problem with `nf` macro and `na` kernel unknowns keeps
-/// `L_γ⁻¹ G` (`nf × na`) from its set-up: where a product with it (`nf na`
-/// multiply-adds, one pass over it) costs less than the solve with the
-/// factor it replaces (two passes over its `nnz_factor` values), and it
-/// fits in [`MAX_KERNEL_SOLVES`]. On the 30³ tower at contrast 1e4 with
-/// 16 subdomains and the edges' constraints (5 212 macro unknowns) the
-/// coarse solve was 85 % of an iteration, two factor solves per inner
-/// solve.
-fn keeps_kernel_solves(nf: usize, na: usize, nnz_factor: usize) -> bool {
-    na > 0 && nf.saturating_mul(na) <= MAX_KERNEL_SOLVES && nf * na <= 2 * nnz_factor
+/// Rows per dense block of the product `Bᵀ B` ([`KernelColumns::gram`]).
+const GRAM_ROWS: usize = 32;
+
+/// `B = L⁻¹ P G` by columns, rows in the factor's (permuted) order, exact
+/// zeros dropped. Where `L_γ = Pᵀ L Lᵀ P`, `S = Gᵀ L_γ⁻¹ G = Bᵀ B`: half
+/// the triangular work of full solves, on right-hand sides that stay
+/// sparse (a kernel column reaches the rows of its elimination-tree
+/// paths: a quarter to a half of `n_macro` on the grids and towers with
+/// 16 and 64 subdomains, where `L_γ⁻¹ G` is dense).
+struct KernelColumns {
+    ptr: Vec<usize>,
+    row: Vec<u32>,
+    val: Vec<f64>,
+}
+
+impl KernelColumns {
+    /// Forward substitutions of the columns of `G`, in batches split
+    /// between the factor and a copy of it on the rayon pool (every column
+    /// is solved as it would be alone: the same bits whatever the split).
+    /// `None` where `B` would hold more than `cap` values (a half's share
+    /// each, where the columns are split).
+    fn forward(
+        factor: &mut SparseCholesky,
+        nf: usize,
+        na: usize,
+        g_ptr: &[usize],
+        g_row: &[usize],
+        g_val: &[f64],
+        cap: usize,
+    ) -> Option<KernelColumns> {
+        let starts: Vec<usize> = (0..na).step_by(SCHUR_BATCH).collect();
+        let half = starts.len() / 2;
+        let columns = |solver: &mut SparseCholesky, starts: &[usize], cap: usize| -> Option<KernelColumns> {
+            let mut out = KernelColumns {
+                ptr: Vec::with_capacity(starts.len() * SCHUR_BATCH + 1),
+                row: Vec::new(),
+                val: Vec::new(),
+            };
+            out.ptr.push(0);
+            let mut block = vec![0.0; nf * SCHUR_BATCH];
+            for &j0 in starts {
+                let w = (na - j0).min(SCHUR_BATCH);
+                let blk = &mut block[..nf * w];
+                blk.iter_mut().for_each(|v| *v = 0.0);
+                for c in 0..w {
+                    let j = j0 + c;
+                    for k in g_ptr[j]..g_ptr[j + 1] {
+                        blk[c * nf + g_row[k]] = g_val[k];
+                    }
+                }
+                solver.forward_columns(blk, w);
+                for col in blk.chunks(nf.max(1)).take(w) {
+                    for (i, &v) in col.iter().enumerate() {
+                        if v != 0.0 {
+                            out.row.push(i as u32);
+                            out.val.push(v);
+                        }
+                    }
+                    if out.val.len() > cap {
+                        return None;
+                    }
+                    out.ptr.push(out.val.len());
+                }
+            }
+            Some(out)
+        };
+        let mut twin = if half > 0 { factor.solver_copy().ok() } else { None };
+        match twin.as_mut() {
+            Some(twin) => {
+                let (a, b) = rayon::join(
+                    || columns(factor, &starts[..half], cap / 2),
+                    || columns(twin, &starts[half..], cap / 2),
+                );
+                let (mut a, b) = (a?, b?);
+                let base = a.val.len();
+                a.ptr.extend(b.ptr[1..].iter().map(|&p| p + base));
+                a.row.extend_from_slice(&b.row);
+                a.val.extend_from_slice(&b.val);
+                Some(a)
+            }
+            None => columns(factor, &starts, cap),
+        }
+    }
+
+    /// `S = Bᵀ B` (`na × na`, symmetric): the rows of `B` in blocks of
+    /// [`GRAM_ROWS`] consecutive rows (rows of one supernode share their
+    /// columns), each block dense on the union of its columns and
+    /// multiplied by faer, then added into `S`. The blocks are split in two
+    /// fixed halves summed in a fixed order: the same bits on any number of
+    /// threads.
+    fn gram(&self, na: usize) -> Mat<f64> {
+        let nrows = self.row.iter().map(|&r| r as usize + 1).max().unwrap_or(0);
+        // Rows of B (by rows: column index and value).
+        let mut rptr = vec![0usize; nrows + 1];
+        for &r in &self.row {
+            rptr[r as usize + 1] += 1;
+        }
+        for i in 0..nrows {
+            rptr[i + 1] += rptr[i];
+        }
+        let mut next = rptr.clone();
+        let mut rcol = vec![0u32; self.row.len()];
+        let mut rval = vec![0.0; self.row.len()];
+        for j in 0..self.ptr.len() - 1 {
+            for k in self.ptr[j]..self.ptr[j + 1] {
+                let r = self.row[k] as usize;
+                rcol[next[r]] = j as u32;
+                rval[next[r]] = self.val[k];
+                next[r] += 1;
+            }
+        }
+        drop(next);
+        let gram_of = |rows: std::ops::Range<usize>| -> Mat<f64> {
+            let mut s = Mat::<f64>::zeros(na, na);
+            let mut slot = vec![usize::MAX; na];
+            let mut cols: Vec<usize> = Vec::with_capacity(na);
+            let mut dense: Vec<f64> = Vec::new();
+            let mut prod = Mat::<f64>::zeros(0, 0);
+            let mut r0 = rows.start;
+            while r0 < rows.end {
+                let r1 = (r0 + GRAM_ROWS).min(rows.end);
+                cols.clear();
+                for k in rptr[r0]..rptr[r1] {
+                    let c = rcol[k] as usize;
+                    if slot[c] == usize::MAX {
+                        slot[c] = cols.len();
+                        cols.push(c);
+                    }
+                }
+                let (g, m) = (r1 - r0, cols.len());
+                if m > 0 {
+                    // D: g × m, column-major.
+                    dense.clear();
+                    dense.resize(g * m, 0.0);
+                    for r in r0..r1 {
+                        for k in rptr[r]..rptr[r + 1] {
+                            dense[slot[rcol[k] as usize] * g + (r - r0)] = rval[k];
+                        }
+                    }
+                    let d = faer::MatRef::from_column_major_slice(&dense, g, m);
+                    if prod.nrows() < m {
+                        prod = Mat::zeros(m, m);
+                    }
+                    faer::linalg::matmul::matmul(
+                        prod.as_mut().submatrix_mut(0, 0, m, m),
+                        faer::Accum::Replace,
+                        d.transpose(),
+                        d,
+                        1.0,
+                        faer::Par::Seq,
+                    );
+                    for (b, &cb) in cols.iter().enumerate() {
+                        for (a, &ca) in cols.iter().enumerate() {
+                            s[(ca, cb)] += prod[(a, b)];
+                        }
+                    }
+                }
+                for &c in &cols {
+                    slot[c] = usize::MAX;
+                }
+                r0 = r1;
+            }
+            s
+        };
+        let mid = nrows / 2;
+        let (mut lo, hi) = rayon::join(|| gram_of(0..mid), || gram_of(mid..nrows));
+        lo += &hi;
+        lo
+    }
+
+    /// `y = Bᵀ x`.
+    fn transpose_mul(&self, x: &[f64], y: &mut [f64]) {
+        for (j, yj) in y.iter_mut().enumerate() {
+            let (p0, p1) = (self.ptr[j], self.ptr[j + 1]);
+            *yj = self.row[p0..p1]
+                .iter()
+                .zip(&self.val[p0..p1])
+                .map(|(&r, &v)| v * x[r as usize])
+                .sum();
+        }
+    }
+
+    /// `y += B x`.
+    fn mul_add(&self, x: &[f64], y: &mut [f64]) {
+        for (j, &xj) in x.iter().enumerate() {
+            if xj == 0.0 {
+                continue;
+            }
+            let (p0, p1) = (self.ptr[j], self.ptr[j + 1]);
+            for (&r, &v) in self.row[p0..p1].iter().zip(&self.val[p0..p1]) {
+                y[r as usize] += v * xj;
+            }
+        }
+    }
+}
+
+/// `S = Gᵀ L_γ⁻¹ G` from full solves in batches of columns, the batches
+/// split between the factor and a copy of it on the rayon pool: where `B`
+/// does not fit ([`MAX_KERNEL_COLUMN_VALUES`]). The same bits whatever the
+/// split.
+fn schur_by_solves(
+    factor: &mut SparseCholesky,
+    nf: usize,
+    na: usize,
+    g_ptr: &[usize],
+    g_row: &[usize],
+    g_val: &[f64],
+) -> Mat<f64> {
+    let starts: Vec<usize> = (0..na).step_by(SCHUR_BATCH).collect();
+    let schur_columns = |solver: &mut SparseCholesky, starts: &[usize]| -> Vec<f64> {
+        let mut cols = Vec::with_capacity(starts.len() * SCHUR_BATCH * na);
+        let mut block = vec![0.0; nf * SCHUR_BATCH];
+        for &j0 in starts {
+            let w = (na - j0).min(SCHUR_BATCH);
+            let blk = &mut block[..nf * w];
+            blk.iter_mut().for_each(|v| *v = 0.0);
+            for c in 0..w {
+                let j = j0 + c;
+                for k in g_ptr[j]..g_ptr[j + 1] {
+                    blk[c * nf + g_row[k]] = g_val[k];
+                }
+            }
+            solver.solve_columns(blk, w);
+            for c in 0..w {
+                let y = &blk[c * nf..(c + 1) * nf];
+                cols.extend((0..na).map(|i| (g_ptr[i]..g_ptr[i + 1]).map(|k| g_val[k] * y[g_row[k]]).sum::<f64>()));
+            }
+        }
+        cols
+    };
+    let half = starts.len() / 2;
+    let mut twin = if half > 0 { factor.solver_copy().ok() } else { None };
+    let cols = match twin.as_mut() {
+        Some(twin) => {
+            let (mut a, b) = rayon::join(
+                || schur_columns(factor, &starts[..half]),
+                || schur_columns(twin, &starts[half..]),
+            );
+            a.extend(b);
+            a
+        }
+        None => schur_columns(factor, &starts),
+    };
+    Mat::from_fn(na, na, |i, j| cols[j * na + i])
 }
 
 /// `y = A x` for a dense column-major matrix, written as column axpys so it
@@ -1277,6 +1486,87 @@ fn sparse_clearly_positive_definite(na: usize, rows: &[Vec<(usize, f64)>]) -> bo
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// `S = Bᵀ B` from the forward-substituted kernel columns against `S`
+    /// from full solves, and the kept columns' inner-solve route
+    /// (`Pᵀ L⁻ᵀ (L⁻¹ P c + B α)`) against `L_γ⁻¹ (c + G α)`: on a 2D
+    /// Laplacian with local kernel columns (70 of them: both halves of the
+    /// batched forward substitutions), whose `B` is sparse. With too small
+    /// a cap the columns are not kept.
+    #[test]
+    fn kernel_columns_give_the_schur_complement_of_full_solves() {
+        let m = 15;
+        let nf = m * m;
+        let mut t = Vec::new();
+        for i in 0..m {
+            for j in 0..m {
+                let k = i * m + j;
+                t.push((k, k, 4.1));
+                if i + 1 < m {
+                    t.push((k + m, k, -1.0));
+                }
+                if j + 1 < m {
+                    t.push((k + 1, k, -1.0));
+                }
+            }
+        }
+        let lower = lower_csc(nf, &t).unwrap();
+        let mut factor = SparseCholesky::factor(&lower, SCHUR_BATCH).unwrap();
+        let na = 70;
+        let (mut g_ptr, mut g_row, mut g_val) = (vec![0], Vec::new(), Vec::new());
+        for q in 0..na {
+            let r0 = (q * 37) % (nf - 3);
+            for r in r0..r0 + 3 {
+                g_row.push(r);
+                g_val.push(1.0 + 0.1 * (q + r) as f64 % 1.0);
+            }
+            g_ptr.push(g_row.len());
+        }
+        let b = KernelColumns::forward(&mut factor, nf, na, &g_ptr, &g_row, &g_val, usize::MAX).unwrap();
+        assert!(
+            b.val.len() < nf * na / 2,
+            "B is sparse here: {} of {}",
+            b.val.len(),
+            nf * na
+        );
+        let s = b.gram(na);
+        let s_ref = schur_by_solves(&mut factor, nf, na, &g_ptr, &g_row, &g_val);
+        let scale = (0..na).map(|i| s_ref[(i, i)]).fold(0.0, f64::max);
+        for i in 0..na {
+            for j in 0..na {
+                assert!((s[(i, j)] - s_ref[(i, j)]).abs() <= 1e-13 * scale, "S[{i},{j}]");
+            }
+        }
+        // f = Pᵀ L⁻ᵀ (L⁻¹ P c + B α) against L_γ⁻¹ (c + G α).
+        let c: Vec<f64> = (0..nf).map(|i| ((i * 7) % 11) as f64 - 5.0).collect();
+        let alpha: Vec<f64> = (0..na).map(|q| ((q * 3) % 5) as f64 - 2.0).collect();
+        let mut f = c.clone();
+        factor.forward_columns(&mut f, 1);
+        b.mul_add(&alpha, &mut f);
+        factor.backward_columns(&mut f, 1);
+        let mut f_ref = vec![0.0; nf];
+        g_mul_into(&g_ptr, &g_row, &g_val, &alpha, &mut f_ref);
+        f_ref.iter_mut().zip(&c).for_each(|(x, &ci)| *x += ci);
+        factor.solve_in_place(&mut f_ref);
+        let fmax = f_ref.iter().fold(0.0f64, |a, v| a.max(v.abs()));
+        for (x, y) in f.iter().zip(&f_ref) {
+            assert!((x - y).abs() <= 1e-13 * fmax);
+        }
+        // Bᵀ (L⁻¹ P c) = Gᵀ L_γ⁻¹ c.
+        let mut w = c.clone();
+        factor.forward_columns(&mut w, 1);
+        let mut bt = vec![0.0; na];
+        b.transpose_mul(&w, &mut bt);
+        let mut y = c.clone();
+        factor.solve_in_place(&mut y);
+        let mut gt = vec![0.0; na];
+        gt_mul_into(&g_ptr, &g_row, &g_val, &y, &mut gt);
+        let gmax = gt.iter().fold(0.0f64, |a, v| a.max(v.abs()));
+        for (x, y) in bt.iter().zip(&gt) {
+            assert!((x - y).abs() <= 1e-13 * gmax);
+        }
+        assert!(KernelColumns::forward(&mut factor, nf, na, &g_ptr, &g_row, &g_val, 100).is_none());
+    }
 
     /// The assembled `L` and `L_γ` are the sums of the subdomains' blocks
     /// scattered to their columns (unsorted), lower triangle by columns

@@ -1020,7 +1020,7 @@ fn cmd_bench(a: BenchArgs) -> Result<i32> {
         }
     } else {
         println!(
-            "{:>6} {:>9} {:>5} {:>7} {:>7} {:>7} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>7} {:>10} {:>11} {:>6}",
+            "{:>6} {:>9} {:>5} {:>7} {:>7} {:>7} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>7} {:>10} {:>11} {:>6} {:>9}",
             "size",
             "dofs",
             "subs",
@@ -1036,7 +1036,8 @@ fn cmd_bench(a: BenchArgs) -> Result<i32> {
             "setup/d",
             "iter ms",
             "substit. ms",
-            "ratio"
+            "ratio",
+            "coarse ms"
         );
         let scenes: Vec<(usize, Scene)> = match &a.scene {
             Some(path) => vec![(0, Scene::load(path)?)],
@@ -1056,7 +1057,7 @@ fn cmd_bench(a: BenchArgs) -> Result<i32> {
             for &s in &a.subdomains {
                 let p = nsdd::bench::dd_profile(&scene, s, a.iterations, a.method.into())?;
                 println!(
-                    "{:>6} {:>9} {:>5} {:>7} {:>7} {:>7} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>7.2} {:>10.3} {:>11.3} {:>6.2}",
+                    "{:>6} {:>9} {:>5} {:>7} {:>7} {:>7} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>8.3} {:>7.2} {:>10.3} {:>11.3} {:>6.2} {:>9.3}",
                     n,
                     p.dofs,
                     p.subdomains,
@@ -1072,7 +1073,8 @@ fn cmd_bench(a: BenchArgs) -> Result<i32> {
                     p.setup_s / direct_s.max(1e-12),
                     1e3 * p.iteration_s,
                     1e3 * p.substitution_s,
-                    p.ratio
+                    p.ratio,
+                    1e3 * p.coarse_solve_s
                 );
                 let mut row = serde_json::to_value(&p).expect("serializable");
                 row["direct_setup_s"] = serde_json::json!(direct_s);

@@ -370,7 +370,7 @@ fn lcg(seed: &mut u64) -> f64 {
 /// with `L` singular on directions that only `G` restrains (`rank L + na =
 /// nf`: the augmentation case) and with extra null directions that act on
 /// nothing (`rank L + na < nf`: the redundant cross-point case). Both
-/// routes of the inner solve: with `L_γ⁻¹ G` kept from the set-up (these
+/// routes of the inner solve: with `B = L⁻¹ P G` kept from the set-up (these
 /// small problems keep it) and with the second solve by the factor.
 #[test]
 fn coarse_solve_matches_dense_saddle_with_singular_macro_block() {
