@@ -1110,6 +1110,9 @@ fn bench_iteration_times_cg_against_subdomain_and_interior_substitutions() {
     // the best of one (the difference is then reported as 0).
     let it = cg["iteration_s"].as_f64().unwrap();
     assert!(it.is_finite() && it >= 0.0, "iteration_s {it}");
+    // Both methods have a coarse problem here (the grid's 4 subdomains).
+    let coarse = cg["coarse_solve_s"].as_f64().unwrap();
+    assert!(coarse > 0.0 && coarse.is_finite(), "coarse_solve_s {coarse}");
     let ml = rows("multilevel");
     assert_eq!(ml["method"], "multilevel");
     assert_eq!(ml["interior_substitution_s"].as_f64(), Some(0.0));
