@@ -23,6 +23,7 @@
 
 use crate::model::{Model, FIXED};
 use crate::partition::Partition;
+use rayon::prelude::*;
 
 /// One subdomain's dofs and interface connectivity.
 #[derive(Debug, Clone)]
@@ -129,15 +130,19 @@ pub struct QualityReport {
 impl Decomposition {
     /// Builds subdomain dof sets and pairwise interfaces of a truss model.
     pub fn new(model: &Model, partition: Partition) -> Decomposition {
+        // Per subdomain, in parallel (each set is its own): the nonsmooth
+        // cg builds a decomposition at every active-set step.
         let dof_sets = partition
             .elements_of
-            .iter()
+            .par_iter()
             .map(|elems| {
-                let mut dofs: Vec<usize> = elems
-                    .iter()
-                    .flat_map(|&e| model.element_dofs(e))
-                    .filter(|&d| d != FIXED)
-                    .collect();
+                let mut dofs: Vec<usize> = Vec::with_capacity(6 * elems.len());
+                dofs.extend(
+                    elems
+                        .iter()
+                        .flat_map(|&e| model.element_dofs(e))
+                        .filter(|&d| d != FIXED),
+                );
                 dofs.sort_unstable();
                 dofs.dedup();
                 dofs
@@ -152,12 +157,25 @@ impl Decomposition {
     /// input order: map through `SubdomainDofs::dofs` / `by_global`.
     pub fn from_dof_sets(partition: Partition, dof_sets: Vec<Vec<usize>>, n_global: usize) -> Decomposition {
         let n_parts = dof_sets.len();
-        // Subdomains touching each free dof, sorted and unique.
-        let mut touch: Vec<Vec<u32>> = vec![Vec::new(); n_global];
+        // Subdomains touching each free dof, sorted and unique (by rows:
+        // dof `d`'s at `touch[touch_ptr[d]..touch_ptr[d + 1]]`).
+        let mut touch_ptr = vec![0usize; n_global + 1];
+        for dofs in &dof_sets {
+            for &d in dofs {
+                touch_ptr[d + 1] += 1;
+            }
+        }
+        for d in 0..n_global {
+            touch_ptr[d + 1] += touch_ptr[d];
+        }
+        let mut touch = vec![0u32; touch_ptr[n_global]];
+        let mut next = touch_ptr.clone();
+        let touch_of = |d: usize| touch_ptr[d]..touch_ptr[d + 1];
         let mut subdomains = Vec::with_capacity(n_parts);
         for (s, dofs) in dof_sets.into_iter().enumerate() {
             for &d in &dofs {
-                touch[d].push(s as u32);
+                touch[next[d]] = s as u32;
+                next[d] += 1;
             }
             subdomains.push(SubdomainDofs {
                 elements: partition.elements_of.get(s).cloned().unwrap_or_default(),
@@ -168,7 +186,7 @@ impl Decomposition {
             });
         }
         for sd in subdomains.iter_mut() {
-            sd.multiplicity = sd.dofs.iter().map(|&d| touch[d].len() as u32).collect();
+            sd.multiplicity = sd.dofs.iter().map(|&d| touch_of(d).len() as u32).collect();
         }
         // Pair-dof entries, grouped by pair, then the pair's own dofs before
         // its cross-point dofs (shared by more subdomains), then by dof:
@@ -176,7 +194,8 @@ impl Decomposition {
         // `interface_layout`). Sorting makes the layout independent of
         // hashing and thread count.
         let mut pairs: Vec<(u32, u32, bool, usize)> = Vec::new();
-        for (d, t) in touch.iter().enumerate() {
+        for d in 0..n_global {
+            let t = &touch[touch_of(d)];
             for i in 0..t.len() {
                 for j in i + 1..t.len() {
                     pairs.push((t[i], t[j], t.len() > 2, d));

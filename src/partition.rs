@@ -231,16 +231,41 @@ impl Partition {
 
 fn repair(model: &Model, part_of: &mut [usize], n_parts: usize) -> usize {
     let nn = model.coords.len();
-    let mut incident: Vec<Vec<usize>> = vec![Vec::new(); nn];
-    for (e, el) in model.elements.iter().enumerate() {
-        incident[el.a].push(e);
-        incident[el.b].push(e);
+    // Elements at each node, increasing (node `n`'s at
+    // `inc[inc_ptr[n]..inc_ptr[n + 1]]`), and its free components: flat
+    // arrays, since the nonsmooth cg repairs a partition at every
+    // active-set step.
+    let mut inc_ptr = vec![0usize; nn + 1];
+    for el in &model.elements {
+        inc_ptr[el.a + 1] += 1;
+        inc_ptr[el.b + 1] += 1;
     }
-    let free: Vec<Vec<usize>> = (0..nn)
-        .map(|n| (0..3).filter(|&d| model.node_dofs[n][d] != FIXED).collect())
+    for n in 0..nn {
+        inc_ptr[n + 1] += inc_ptr[n];
+    }
+    let mut inc = vec![0usize; inc_ptr[nn]];
+    let mut next = inc_ptr.clone();
+    for (e, el) in model.elements.iter().enumerate() {
+        for n in [el.a, el.b] {
+            inc[next[n]] = e;
+            next[n] += 1;
+        }
+    }
+    drop(next);
+    let incident = |n: usize| &inc[inc_ptr[n]..inc_ptr[n + 1]];
+    let free_of: Vec<([usize; 3], usize)> = (0..nn)
+        .map(|n| {
+            let mut f = ([0; 3], 0);
+            for d in (0..3).filter(|&d| model.node_dofs[n][d] != FIXED) {
+                f.0[f.1] = d;
+                f.1 += 1;
+            }
+            f
+        })
         .collect();
+    let free = |n: usize| &free_of[n].0[..free_of[n].1];
     let star = |n: usize, q: usize, part_of: &[usize]| -> Vec<usize> {
-        incident[n].iter().copied().filter(|&e| part_of[e] == q).collect()
+        incident(n).iter().copied().filter(|&e| part_of[e] == q).collect()
     };
     // Strong (or absent) holder `q` at `n`, after `add`/`remove` of one element.
     let ok_after = |n: usize, q: usize, part_of: &[usize], add: Option<usize>, remove: Option<usize>| -> bool {
@@ -251,7 +276,7 @@ fn repair(model: &Model, part_of: &mut [usize], n_parts: usize) -> usize {
         if let Some(a) = add {
             st.push(a);
         }
-        st.is_empty() || free[n].is_empty() || spans(model, &st, &free[n])
+        st.is_empty() || free(n).is_empty() || spans(model, &st, free(n))
     };
     let mut count = vec![0usize; n_parts];
     for &p in part_of.iter() {
@@ -266,24 +291,26 @@ fn repair(model: &Model, part_of: &mut [usize], n_parts: usize) -> usize {
     for _ in 0..REPAIR_PASSES {
         let mut changed = false;
         for n in 0..nn {
-            if free[n].is_empty() {
+            // Most nodes lie inside one subdomain: nothing to look at.
+            let at = incident(n);
+            if free(n).is_empty() || at.iter().all(|&e| part_of[e] == part_of[at[0]]) {
                 continue;
             }
-            let mut parts: Vec<usize> = incident[n].iter().map(|&e| part_of[e]).collect();
+            let mut parts: Vec<usize> = at.iter().map(|&e| part_of[e]).collect();
             parts.sort_unstable();
             parts.dedup();
             if parts.len() < 2 {
                 continue;
             }
             for &p in &parts {
-                if spans(model, &star(n, p, part_of), &free[n]) {
+                if spans(model, &star(n, p, part_of), free(n)) {
                     continue;
                 }
                 // Pull: elements of other holders at n whose removal keeps
                 // them strong at both ends and that p holds strongly at
                 // their other end.
                 let mut pulled = Vec::new();
-                for &e in &incident[n] {
+                for &e in incident(n) {
                     let q = part_of[e];
                     if q == p || moves[e] >= MAX_MOVES_PER_ELEMENT || count[q] <= lo || count[p] + pulled.len() >= hi {
                         continue;
@@ -296,12 +323,12 @@ fn repair(model: &Model, part_of: &mut [usize], n_parts: usize) -> usize {
                     {
                         part_of[e] = p;
                         pulled.push((e, q));
-                        if spans(model, &star(n, p, part_of), &free[n]) {
+                        if spans(model, &star(n, p, part_of), free(n)) {
                             break;
                         }
                     }
                 }
-                if spans(model, &star(n, p, part_of), &free[n]) {
+                if spans(model, &star(n, p, part_of), free(n)) {
                     for &(e, q) in &pulled {
                         moves[e] += 1;
                         count[q] -= 1;
@@ -319,7 +346,7 @@ fn repair(model: &Model, part_of: &mut [usize], n_parts: usize) -> usize {
                 let strong: Vec<usize> = parts
                     .iter()
                     .copied()
-                    .filter(|&q| q != p && spans(model, &star(n, q, part_of), &free[n]))
+                    .filter(|&q| q != p && spans(model, &star(n, q, part_of), free(n)))
                     .collect();
                 let pool = if strong.is_empty() {
                     parts.iter().copied().filter(|&q| q != p).collect()
