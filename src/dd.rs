@@ -217,7 +217,7 @@ impl<'a> DdProblem<'a> {
             .collect();
         let operators = placement.agree(ops.into_iter().collect::<Result<Vec<_>>>())?;
         let loads = dec.subdomains[owned]
-            .iter()
+            .par_iter()
             .map(|sd| {
                 let n = sd.dofs.len();
                 let mut constant = vec![0.0; n];
