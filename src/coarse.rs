@@ -228,10 +228,10 @@ pub struct CoarseContribution {
 ///   multipliers at cross points, which act on nothing; GMRES on the exact
 ///   system, preconditioned by this factorization, removes the
 ///   perturbation (one cycle of a few iterations in practice);
-/// - `S = Gᵀ L_γ⁻¹ G` is small (one row per kernel mode) and kept as a dense
-///   inverse. It is formed as `Bᵀ B` from `B = L⁻¹ P G` (`L_γ = Pᵀ L Lᵀ
-///   P`): forward substitutions only, whose columns stay sparse, and `B`
-///   is kept for the solves.
+/// - `S = Gᵀ L_γ⁻¹ G` is small (one row per kernel mode) and kept as its
+///   dense Cholesky factor. It is formed as `Bᵀ B` from `B = L⁻¹ P G`
+///   (`L_γ = Pᵀ L Lᵀ P`): forward substitutions only, whose columns stay
+///   sparse, and `B` is kept for the solves.
 ///
 /// Every solve is allocation free.
 pub struct CoarseProblem {
@@ -1060,11 +1060,23 @@ const GRAM_ROWS: usize = 32;
 /// sparse (a kernel column reaches the rows of its elimination-tree
 /// paths: a quarter to a half of `n_macro` on the grids and towers with
 /// 16 and 64 subdomains, where `L_γ⁻¹ G` is dense).
+///
+/// Each column is stored as runs of consecutive rows (`(first row,
+/// length)`, values contiguous, gaps of up to [`RUN_GAP`] zeros kept
+/// inside a run): a column's rows are its elimination-tree paths, mostly
+/// whole supernodes, so the products of the iteration's coarse solves run
+/// over contiguous slices instead of gathering row by row.
 struct KernelColumns {
+    /// Column `j`'s runs at `runs[ptr[j]..ptr[j + 1]]`.
     ptr: Vec<usize>,
-    row: Vec<u32>,
+    runs: Vec<(u32, u32)>,
+    /// The runs' values, run after run, column after column.
     val: Vec<f64>,
 }
+
+/// Zeros between two nonzeros of a column of `B` kept inside one run
+/// rather than starting another ([`KernelColumns`]).
+const RUN_GAP: usize = 4;
 
 impl KernelColumns {
     /// Forward substitutions of the columns of `G`, in batches split
@@ -1086,7 +1098,7 @@ impl KernelColumns {
         let columns = |solver: &mut SparseCholesky, starts: &[usize], cap: usize| -> Option<KernelColumns> {
             let mut out = KernelColumns {
                 ptr: Vec::with_capacity(starts.len() * SCHUR_BATCH + 1),
-                row: Vec::new(),
+                runs: Vec::new(),
                 val: Vec::new(),
             };
             out.ptr.push(0);
@@ -1103,16 +1115,10 @@ impl KernelColumns {
                 }
                 solver.forward_columns(blk, w);
                 for col in blk.chunks(nf.max(1)).take(w) {
-                    for (i, &v) in col.iter().enumerate() {
-                        if v != 0.0 {
-                            out.row.push(i as u32);
-                            out.val.push(v);
-                        }
-                    }
+                    out.push_column(col);
                     if out.val.len() > cap {
                         return None;
                     }
-                    out.ptr.push(out.val.len());
                 }
             }
             Some(out)
@@ -1125,9 +1131,9 @@ impl KernelColumns {
                     || columns(twin, &starts[half..], cap / 2),
                 );
                 let (mut a, b) = (a?, b?);
-                let base = a.val.len();
+                let base = a.runs.len();
                 a.ptr.extend(b.ptr[1..].iter().map(|&p| p + base));
-                a.row.extend_from_slice(&b.row);
+                a.runs.extend_from_slice(&b.runs);
                 a.val.extend_from_slice(&b.val);
                 Some(a)
             }
@@ -1142,24 +1148,29 @@ impl KernelColumns {
     /// fixed halves summed in a fixed order: the same bits on any number of
     /// threads.
     fn gram(&self, na: usize) -> Mat<f64> {
-        let nrows = self.row.iter().map(|&r| r as usize + 1).max().unwrap_or(0);
+        let nrows = self.runs.iter().map(|&(r, n)| (r + n) as usize).max().unwrap_or(0);
         // Rows of B (by rows: column index and value).
         let mut rptr = vec![0usize; nrows + 1];
-        for &r in &self.row {
-            rptr[r as usize + 1] += 1;
+        for &(r, n) in &self.runs {
+            for i in r as usize..(r + n) as usize {
+                rptr[i + 1] += 1;
+            }
         }
         for i in 0..nrows {
             rptr[i + 1] += rptr[i];
         }
         let mut next = rptr.clone();
-        let mut rcol = vec![0u32; self.row.len()];
-        let mut rval = vec![0.0; self.row.len()];
+        let mut rcol = vec![0u32; self.val.len()];
+        let mut rval = vec![0.0; self.val.len()];
+        let mut off = 0;
         for j in 0..self.ptr.len() - 1 {
-            for k in self.ptr[j]..self.ptr[j + 1] {
-                let r = self.row[k] as usize;
-                rcol[next[r]] = j as u32;
-                rval[next[r]] = self.val[k];
-                next[r] += 1;
+            for &(r, n) in &self.runs[self.ptr[j]..self.ptr[j + 1]] {
+                for (i, &v) in (r as usize..(r + n) as usize).zip(&self.val[off..off + n as usize]) {
+                    rcol[next[i]] = j as u32;
+                    rval[next[i]] = v;
+                    next[i] += 1;
+                }
+                off += n as usize;
             }
         }
         drop(next);
@@ -1231,27 +1242,59 @@ impl KernelColumns {
         lo
     }
 
+    /// Appends a column of `B` from its dense values (exact zeros
+    /// dropped, short gaps kept inside runs: see [`RUN_GAP`]).
+    fn push_column(&mut self, col: &[f64]) {
+        let n = col.len();
+        let mut i = 0;
+        while i < n {
+            if col[i] == 0.0 {
+                i += 1;
+                continue;
+            }
+            // A run from i to the last nonzero followed by more than
+            // RUN_GAP zeros (or the end).
+            let mut end = i + 1;
+            let mut k = end;
+            while k < n && k - end <= RUN_GAP {
+                if col[k] != 0.0 {
+                    end = k + 1;
+                }
+                k += 1;
+            }
+            self.runs.push((i as u32, (end - i) as u32));
+            self.val.extend_from_slice(&col[i..end]);
+            i = end;
+        }
+        self.ptr.push(self.runs.len());
+    }
+
     /// `y = Bᵀ x`.
     fn transpose_mul(&self, x: &[f64], y: &mut [f64]) {
+        let mut off = 0;
         for (j, yj) in y.iter_mut().enumerate() {
-            let (p0, p1) = (self.ptr[j], self.ptr[j + 1]);
-            *yj = self.row[p0..p1]
-                .iter()
-                .zip(&self.val[p0..p1])
-                .map(|(&r, &v)| v * x[r as usize])
-                .sum();
+            let mut acc = 0.0;
+            for &(r, n) in &self.runs[self.ptr[j]..self.ptr[j + 1]] {
+                let (r, n) = (r as usize, n as usize);
+                acc += crate::kernels::dot(&self.val[off..off + n], &x[r..r + n]);
+                off += n;
+            }
+            *yj = acc;
         }
     }
 
     /// `y += B x`.
     fn mul_add(&self, x: &[f64], y: &mut [f64]) {
+        let mut off = 0;
         for (j, &xj) in x.iter().enumerate() {
-            if xj == 0.0 {
-                continue;
-            }
-            let (p0, p1) = (self.ptr[j], self.ptr[j + 1]);
-            for (&r, &v) in self.row[p0..p1].iter().zip(&self.val[p0..p1]) {
-                y[r as usize] += v * xj;
+            for &(r, n) in &self.runs[self.ptr[j]..self.ptr[j + 1]] {
+                let (r, n) = (r as usize, n as usize);
+                if xj != 0.0 {
+                    for (yi, &v) in y[r..r + n].iter_mut().zip(&self.val[off..off + n]) {
+                        *yi += v * xj;
+                    }
+                }
+                off += n;
             }
         }
     }
