@@ -1094,8 +1094,7 @@ impl KernelColumns {
         cap: usize,
     ) -> Option<KernelColumns> {
         let starts: Vec<usize> = (0..na).step_by(SCHUR_BATCH).collect();
-        let half = starts.len() / 2;
-        let columns = |solver: &mut SparseCholesky, starts: &[usize], cap: usize| -> Option<KernelColumns> {
+        let columns = |solver: &mut SparseCholesky, starts: &[usize], parts: usize| -> Option<KernelColumns> {
             let mut out = KernelColumns {
                 ptr: Vec::with_capacity(starts.len() * SCHUR_BATCH + 1),
                 runs: Vec::new(),
@@ -1106,39 +1105,27 @@ impl KernelColumns {
             for &j0 in starts {
                 let w = (na - j0).min(SCHUR_BATCH);
                 let blk = &mut block[..nf * w];
-                blk.iter_mut().for_each(|v| *v = 0.0);
-                for c in 0..w {
-                    let j = j0 + c;
-                    for k in g_ptr[j]..g_ptr[j + 1] {
-                        blk[c * nf + g_row[k]] = g_val[k];
-                    }
-                }
+                g_columns_into(blk, nf, j0, g_ptr, g_row, g_val);
                 solver.forward_columns(blk, w);
                 for col in blk.chunks(nf.max(1)).take(w) {
                     out.push_column(col);
-                    if out.val.len() > cap {
+                    if out.val.len() > cap / parts {
                         return None;
                     }
                 }
             }
             Some(out)
         };
-        let mut twin = if half > 0 { factor.solver_copy().ok() } else { None };
-        match twin.as_mut() {
-            Some(twin) => {
-                let (a, b) = rayon::join(
-                    || columns(factor, &starts[..half], cap / 2),
-                    || columns(twin, &starts[half..], cap / 2),
-                );
-                let (mut a, b) = (a?, b?);
-                let base = a.runs.len();
-                a.ptr.extend(b.ptr[1..].iter().map(|&p| p + base));
-                a.runs.extend_from_slice(&b.runs);
-                a.val.extend_from_slice(&b.val);
-                Some(a)
-            }
-            None => columns(factor, &starts, cap),
+        let (a, b) = on_two_solvers(factor, &starts, columns);
+        let mut a = a?;
+        if let Some(b) = b {
+            let b = b?;
+            let base = a.runs.len();
+            a.ptr.extend(b.ptr[1..].iter().map(|&p| p + base));
+            a.runs.extend_from_slice(&b.runs);
+            a.val.extend_from_slice(&b.val);
         }
+        Some(a)
     }
 
     /// `S = Bᵀ B` (`na × na`, symmetric): the rows of `B` in blocks of
@@ -1300,6 +1287,39 @@ impl KernelColumns {
     }
 }
 
+/// Columns `j0..j0 + w` of `G` (stored by columns) into the column-major
+/// block `blk` (`nf` rows, `w` columns), zero elsewhere.
+fn g_columns_into(blk: &mut [f64], nf: usize, j0: usize, g_ptr: &[usize], g_row: &[usize], g_val: &[f64]) {
+    blk.iter_mut().for_each(|v| *v = 0.0);
+    for (c, col) in blk.chunks_mut(nf.max(1)).enumerate() {
+        let j = j0 + c;
+        for k in g_ptr[j]..g_ptr[j + 1] {
+            col[g_row[k]] = g_val[k];
+        }
+    }
+}
+
+/// `work(solver, batches, parts)` on the batches `starts` of columns of
+/// `G`, split in two halves between `factor` and a copy of it on the
+/// rayon pool (`parts` = 2; 1 with a single batch or no copy): the halves'
+/// results in order. Every batch is solved as it would be alone, so the
+/// results have the same bits whatever the split.
+fn on_two_solvers<T: Send>(
+    factor: &mut SparseCholesky,
+    starts: &[usize],
+    work: impl Fn(&mut SparseCholesky, &[usize], usize) -> T + Sync,
+) -> (T, Option<T>) {
+    let half = starts.len() / 2;
+    let mut twin = if half > 0 { factor.solver_copy().ok() } else { None };
+    match twin.as_mut() {
+        Some(twin) => {
+            let (a, b) = rayon::join(|| work(factor, &starts[..half], 2), || work(twin, &starts[half..], 2));
+            (a, Some(b))
+        }
+        None => (work(factor, starts, 1), None),
+    }
+}
+
 /// `S = Gᵀ L_γ⁻¹ G` from full solves in batches of columns, the batches
 /// split between the factor and a copy of it on the rayon pool: where `B`
 /// does not fit ([`MAX_KERNEL_COLUMN_VALUES`]). The same bits whatever the
@@ -1313,19 +1333,13 @@ fn schur_by_solves(
     g_val: &[f64],
 ) -> Mat<f64> {
     let starts: Vec<usize> = (0..na).step_by(SCHUR_BATCH).collect();
-    let schur_columns = |solver: &mut SparseCholesky, starts: &[usize]| -> Vec<f64> {
+    let schur_columns = |solver: &mut SparseCholesky, starts: &[usize], _parts: usize| -> Vec<f64> {
         let mut cols = Vec::with_capacity(starts.len() * SCHUR_BATCH * na);
         let mut block = vec![0.0; nf * SCHUR_BATCH];
         for &j0 in starts {
             let w = (na - j0).min(SCHUR_BATCH);
             let blk = &mut block[..nf * w];
-            blk.iter_mut().for_each(|v| *v = 0.0);
-            for c in 0..w {
-                let j = j0 + c;
-                for k in g_ptr[j]..g_ptr[j + 1] {
-                    blk[c * nf + g_row[k]] = g_val[k];
-                }
-            }
+            g_columns_into(blk, nf, j0, g_ptr, g_row, g_val);
             solver.solve_columns(blk, w);
             for c in 0..w {
                 let y = &blk[c * nf..(c + 1) * nf];
@@ -1334,19 +1348,8 @@ fn schur_by_solves(
         }
         cols
     };
-    let half = starts.len() / 2;
-    let mut twin = if half > 0 { factor.solver_copy().ok() } else { None };
-    let cols = match twin.as_mut() {
-        Some(twin) => {
-            let (mut a, b) = rayon::join(
-                || schur_columns(factor, &starts[..half]),
-                || schur_columns(twin, &starts[half..]),
-            );
-            a.extend(b);
-            a
-        }
-        None => schur_columns(factor, &starts),
-    };
+    let (mut cols, rest) = on_two_solvers(factor, &starts, schur_columns);
+    cols.extend(rest.unwrap_or_default());
     Mat::from_fn(na, na, |i, j| cols[j * na + i])
 }
 
