@@ -16,7 +16,7 @@
 //! to round-off.
 
 use crate::error::{Error, Result};
-use crate::factor::{lower_csc, lower_diagonal, sym_matvec, FactorError, SparseCholesky};
+use crate::factor::{group_by_key, lower_csc, lower_diagonal, sym_matvec, FactorError, SparseCholesky};
 use crate::subdomain::orthonormal_columns;
 use faer::sparse::SparseColMat;
 use faer::Mat;
@@ -807,11 +807,6 @@ impl CoarseProblem {
         self.kernel_columns.is_some()
     }
 
-    /// Stored values of the kept `B = L⁻¹ P G` (0 if not kept).
-    pub fn nnz_kernel_columns(&self) -> usize {
-        self.kernel_columns.as_ref().map_or(0, |b| b.val.len())
-    }
-
     /// The operator `L` as a dense matrix (for tests on small cases).
     pub fn operator(&self) -> Mat<f64> {
         let nf = self.n_macro;
@@ -1137,30 +1132,16 @@ impl KernelColumns {
     fn gram(&self, na: usize) -> Mat<f64> {
         let nrows = self.runs.iter().map(|&(r, n)| (r + n) as usize).max().unwrap_or(0);
         // Rows of B (by rows: column index and value).
-        let mut rptr = vec![0usize; nrows + 1];
-        for &(r, n) in &self.runs {
-            for i in r as usize..(r + n) as usize {
-                rptr[i + 1] += 1;
-            }
-        }
-        for i in 0..nrows {
-            rptr[i + 1] += rptr[i];
-        }
-        let mut next = rptr.clone();
-        let mut rcol = vec![0u32; self.val.len()];
-        let mut rval = vec![0.0; self.val.len()];
-        let mut off = 0;
-        for j in 0..self.ptr.len() - 1 {
-            for &(r, n) in &self.runs[self.ptr[j]..self.ptr[j + 1]] {
-                for (i, &v) in (r as usize..(r + n) as usize).zip(&self.val[off..off + n as usize]) {
-                    rcol[next[i]] = j as u32;
-                    rval[next[i]] = v;
-                    next[i] += 1;
-                }
-                off += n as usize;
-            }
-        }
-        drop(next);
+        let (rptr, entries) = group_by_key(nrows, || {
+            (0..self.ptr.len() - 1)
+                .flat_map(|j| self.runs[self.ptr[j]..self.ptr[j + 1]].iter().map(move |&run| (j, run)))
+                .scan(0usize, |off, (j, (r, n))| {
+                    let start = *off;
+                    *off += n as usize;
+                    Some((j, r as usize, start..*off))
+                })
+                .flat_map(|(j, r, vals)| (r..).zip(&self.val[vals]).map(move |(i, &v)| (i, (j as u32, v))))
+        });
         let gram_of = |rows: std::ops::Range<usize>| -> Mat<f64> {
             let mut s = Mat::<f64>::zeros(na, na);
             let mut slot = vec![usize::MAX; na];
@@ -1171,8 +1152,8 @@ impl KernelColumns {
             while r0 < rows.end {
                 let r1 = (r0 + GRAM_ROWS).min(rows.end);
                 cols.clear();
-                for k in rptr[r0]..rptr[r1] {
-                    let c = rcol[k] as usize;
+                for &(c, _) in &entries[rptr[r0]..rptr[r1]] {
+                    let c = c as usize;
                     if slot[c] == usize::MAX {
                         slot[c] = cols.len();
                         cols.push(c);
@@ -1184,8 +1165,8 @@ impl KernelColumns {
                     dense.clear();
                     dense.resize(g * m, 0.0);
                     for r in r0..r1 {
-                        for k in rptr[r]..rptr[r + 1] {
-                            dense[slot[rcol[k] as usize] * g + (r - r0)] = rval[k];
+                        for &(c, v) in &entries[rptr[r]..rptr[r + 1]] {
+                            dense[slot[c as usize] * g + (r - r0)] = v;
                         }
                     }
                     let d = faer::MatRef::from_column_major_slice(&dense, g, m);

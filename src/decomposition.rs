@@ -21,6 +21,7 @@
 //! reference numbering ([`SubdomainDofs::reference_rank`],
 //! `factor::EliminationOrder`).
 
+use crate::factor::group_by_key;
 use crate::model::{Model, FIXED};
 use crate::partition::Partition;
 use rayon::prelude::*;
@@ -159,24 +160,15 @@ impl Decomposition {
         let n_parts = dof_sets.len();
         // Subdomains touching each free dof, sorted and unique (by rows:
         // dof `d`'s at `touch[touch_ptr[d]..touch_ptr[d + 1]]`).
-        let mut touch_ptr = vec![0usize; n_global + 1];
-        for dofs in &dof_sets {
-            for &d in dofs {
-                touch_ptr[d + 1] += 1;
-            }
-        }
-        for d in 0..n_global {
-            touch_ptr[d + 1] += touch_ptr[d];
-        }
-        let mut touch = vec![0u32; touch_ptr[n_global]];
-        let mut next = touch_ptr.clone();
+        let (touch_ptr, touch) = group_by_key(n_global, || {
+            dof_sets
+                .iter()
+                .enumerate()
+                .flat_map(|(s, dofs)| dofs.iter().map(move |&d| (d, s as u32)))
+        });
         let touch_of = |d: usize| touch_ptr[d]..touch_ptr[d + 1];
         let mut subdomains = Vec::with_capacity(n_parts);
         for (s, dofs) in dof_sets.into_iter().enumerate() {
-            for &d in &dofs {
-                touch[next[d]] = s as u32;
-                next[d] += 1;
-            }
             subdomains.push(SubdomainDofs {
                 elements: partition.elements_of.get(s).cloned().unwrap_or_default(),
                 by_global: (0..dofs.len() as u32).collect(),

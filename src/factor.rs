@@ -125,6 +125,30 @@ fn same_pattern(lower: &SparseColMat<usize, f64>, pattern: &(Vec<usize>, Vec<usi
 }
 
 /// Builds a lower-triangular CSC matrix from triplets, summing duplicates.
+/// Groups the `(key, value)` pairs by key (keys below `n`), each group in
+/// the order the pairs come: returns the offsets (`n + 1`) and the values,
+/// key `k`'s at `values[ptr[k]..ptr[k + 1]]`. A counting sort: `pairs` is
+/// called twice, to count and to fill.
+pub(crate) fn group_by_key<T: Copy + Default, I: Iterator<Item = (usize, T)>>(
+    n: usize,
+    pairs: impl Fn() -> I,
+) -> (Vec<usize>, Vec<T>) {
+    let mut ptr = vec![0usize; n + 1];
+    for (k, _) in pairs() {
+        ptr[k + 1] += 1;
+    }
+    for k in 0..n {
+        ptr[k + 1] += ptr[k];
+    }
+    let mut next = ptr.clone();
+    let mut values = vec![T::default(); ptr[n]];
+    for (k, v) in pairs() {
+        values[next[k]] = v;
+        next[k] += 1;
+    }
+    (ptr, values)
+}
+
 /// A counting sort by column, then a short sort per column: element
 /// assembly produces ~21 triplets per element and a few dozen per column,
 /// so this is several times faster than a general triplet conversion.
@@ -135,19 +159,7 @@ pub fn lower_csc(n: usize, triplets: &[(usize, usize, f64)]) -> Result<SparseCol
             "entry ({r}, {c}) outside a {n}x{n} matrix"
         )));
     }
-    let mut count = vec![0usize; n + 1];
-    for &(_, c, _) in triplets {
-        count[c + 1] += 1;
-    }
-    for j in 0..n {
-        count[j + 1] += count[j];
-    }
-    let mut next = count.clone();
-    let mut bucket: Vec<(usize, f64)> = vec![(0, 0.0); triplets.len()];
-    for &(r, c, v) in triplets {
-        bucket[next[c]] = (r, v);
-        next[c] += 1;
-    }
+    let (count, mut bucket) = group_by_key(n, || triplets.iter().map(|&(r, c, v)| (c, (r, v))));
     let mut col_ptr = Vec::with_capacity(n + 1);
     let mut row_idx = Vec::with_capacity(triplets.len() / 2);
     let mut values = Vec::with_capacity(triplets.len() / 2);

@@ -13,6 +13,7 @@
 //! strongly (see [`Partition::repair_weak_nodes`]).
 
 use crate::error::{Error, Result};
+use crate::factor::group_by_key;
 use crate::model::{Model, FIXED};
 
 /// Free dofs per subdomain the automatic count aims at: subdomain
@@ -235,23 +236,13 @@ fn repair(model: &Model, part_of: &mut [usize], n_parts: usize) -> usize {
     // `inc[inc_ptr[n]..inc_ptr[n + 1]]`), and its free components: flat
     // arrays, since the nonsmooth cg repairs a partition at every
     // active-set step.
-    let mut inc_ptr = vec![0usize; nn + 1];
-    for el in &model.elements {
-        inc_ptr[el.a + 1] += 1;
-        inc_ptr[el.b + 1] += 1;
-    }
-    for n in 0..nn {
-        inc_ptr[n + 1] += inc_ptr[n];
-    }
-    let mut inc = vec![0usize; inc_ptr[nn]];
-    let mut next = inc_ptr.clone();
-    for (e, el) in model.elements.iter().enumerate() {
-        for n in [el.a, el.b] {
-            inc[next[n]] = e;
-            next[n] += 1;
-        }
-    }
-    drop(next);
+    let (inc_ptr, inc) = group_by_key(nn, || {
+        model
+            .elements
+            .iter()
+            .enumerate()
+            .flat_map(|(e, el)| [(el.a, e), (el.b, e)])
+    });
     let incident = |n: usize| &inc[inc_ptr[n]..inc_ptr[n + 1]];
     let free_of: Vec<([usize; 3], usize)> = (0..nn)
         .map(|n| {
