@@ -398,13 +398,15 @@ impl<'de> Deserialize<'de> for AdaptiveEdges {
 /// `Auto` (the default) is 3 for `cg` on a flat structure (its nodes'
 /// smallest principal spread at most [`FLAT_SPREAD_RATIO`] of the middle
 /// one) with the adaptive macro space off, on the interfaces of at least
-/// [`POLYNOMIAL_FACE_NODES`] nodes; 1 elsewhere. Where the plates'
+/// [`POLYNOMIAL_FACE_NODES`] nodes; 2 on those of [`QUADRATIC_FACE_NODES`]
+/// to 19 nodes; 1 elsewhere. Where the plates'
 /// interfaces get them (24² in 4, 48² and 65² in 4 and 16, 130² in 4–64
 /// subdomains) `cg` then takes 8–17 iterations where it took 15–33, for
-/// the same time or up to 1.3× less. Smaller interfaces keep degree 1:
-/// there the added columns make the coarse problem a large part of the
+/// the same time or up to 1.3× less. Smaller interfaces get less: there
+/// the 30 columns of degree 3 make the coarse problem a large part of the
 /// interface (13 % of the 65² plate's dofs with 64 subdomains), and cg
-/// took 1.2–2.3× longer with them although its iterations fell 2–3×. On
+/// took 1.2–2.3× longer with them although its iterations fell 2–3×; the
+/// 18 of degree 2 pay on faces of 14 nodes or more. On
 /// 3D towers the added columns cost more coarse work than they save; with
 /// the adaptive space (stiffness contrast) they broke `cg` down; and the
 /// stationary `multilevel` stops on a floor near 1.7e-12 with them on the
@@ -423,6 +425,7 @@ impl<'de> Deserialize<'de> for AdaptiveEdges {
 /// assert_eq!(MacroDegree::Fixed(2).resolve(false, true, false), 2);
 /// // Small interfaces keep degree 1 under "auto", not when it is fixed.
 /// assert_eq!(MacroDegree::Auto.on_interface(3, || 12), 1);
+/// assert_eq!(MacroDegree::Auto.on_interface(3, || 16), 2);
 /// assert_eq!(MacroDegree::Auto.on_interface(3, || 40), 3);
 /// assert_eq!(MacroDegree::Fixed(3).on_interface(3, || 12), 3);
 /// ```
@@ -451,6 +454,18 @@ pub const FLAT_SPREAD_RATIO: f64 = 0.3;
 /// faces (21–25 nodes where the 32² plate cut in 4 has 32): at 20 they
 /// keep degree 3 and the iterations of a uniform degree 3.
 pub const POLYNOMIAL_FACE_NODES: usize = 20;
+
+/// Fewest nodes on an interface for [`MacroDegree::Auto`] to give it the
+/// quadratic fields (degree 2, 18 columns where degree 3 has 30) when it
+/// is smaller than [`POLYNOMIAL_FACE_NODES`]. Measured with `cg` to 1e-8
+/// (best of 3, interleaved): on faces of 16–18 nodes (the 65² plate cut in
+/// 64, the 32² one in 16) degree 2 takes 15 and 14 iterations instead of
+/// 27 and 25 for the same time within the runs' spread, where degree 3
+/// was 1.2–1.4× slower; on faces of 10–14 nodes (40² and 48² in 64, 24²
+/// in 16) it also halves them but took 8–11 % longer, so those keep
+/// degree 1. The nonsmooth 65² grid cut in 64 takes 97 iterations instead
+/// of 157 with it, in 4.2 s against 3.8 s.
+pub const QUADRATIC_FACE_NODES: usize = 16;
 
 impl MacroDegree {
     /// Highest degree accepted.
@@ -486,12 +501,17 @@ impl MacroDegree {
 
     /// The degree of one interface whose node count `nodes` gives,
     /// `resolved` being what [`Self::resolve`] gave: a fixed degree holds on
-    /// every interface, `Auto` keeps 1 on those smaller than
-    /// [`POLYNOMIAL_FACE_NODES`]. `nodes` is only called where the count can
+    /// every interface; `Auto` lowers it to 2 on those smaller than
+    /// [`POLYNOMIAL_FACE_NODES`] and to 1 on those smaller than
+    /// [`QUADRATIC_FACE_NODES`]. `nodes` is only called where the count can
     /// change the answer (`Auto` above degree 1).
     pub fn on_interface(self, resolved: u8, nodes: impl FnOnce() -> usize) -> u8 {
         match self {
-            MacroDegree::Auto if resolved > 1 && nodes() < POLYNOMIAL_FACE_NODES => 1,
+            MacroDegree::Auto if resolved > 1 => match nodes() {
+                n if n >= POLYNOMIAL_FACE_NODES => resolved,
+                n if n >= QUADRATIC_FACE_NODES => resolved.min(2),
+                _ => 1,
+            },
             _ => resolved,
         }
     }

@@ -578,7 +578,9 @@ fn assert_displacements_near_direct(model: &Model, u: &[f64], what: &str) {
 /// degree 3 takes cg to the direct answer in well under half the
 /// iterations of degree 1 (8 and 22 when written). `"auto"` keeps degree 1
 /// there, whose interfaces have at most 14 nodes (below
-/// `POLYNOMIAL_FACE_NODES`), with the bits of degree 1; on a 40² plate cut
+/// `QUADRATIC_FACE_NODES`), with the bits of degree 1; on a 32² plate cut
+/// in 16 (faces of 16–18 nodes) it picks degree 2 and well under the
+/// iterations of degree 1 (14 and 25 when written); on a 40² plate cut
 /// in 4 (interfaces of ~40 nodes) it picks 3 on the large interfaces and
 /// cuts the iterations; on a uniform tower it keeps 1, with the bits of
 /// degree 1.
@@ -612,6 +614,12 @@ fn polynomial_macro_fields_cut_the_plate_iterations() {
     let (it_auto, d_auto, _, u_auto) = run(&plate, 16, MacroDegree::Auto);
     assert_eq!((it_auto, d_auto.0, d_auto.1), (it1, 1, 0));
     assert_eq!(u_auto, u1);
+    let medium = grid_scene(32, false);
+    let (it1, _, _, _) = run(&medium, 16, MacroDegree::Fixed(1));
+    let (it_auto, (degree, polynomial, _), _, _) = run(&medium, 16, MacroDegree::Auto);
+    assert_eq!(degree, 2, "faces of 16-18 nodes take the quadratic fields");
+    assert!(polynomial > 0);
+    assert!(3 * it_auto < 2 * it1, "iterations: degree 1 {it1}, auto {it_auto}");
     let large = grid_scene(40, false);
     let (it1, _, _, _) = run(&large, 4, MacroDegree::Fixed(1));
     let (it_auto, (degree, polynomial, interfaces), _, _) = run(&large, 4, MacroDegree::Auto);

@@ -535,7 +535,8 @@ pub unsafe extern "C" fn nsdd_options_set_adaptive_edges_auto(options: *mut Nsdd
 /// quadratic, then cubic, fields per component added: on plates `cg` takes
 /// about half the iterations); 0 lets the solver choose (the default: 3
 /// for `cg` on the interfaces of 20 nodes or more of a flat structure
-/// without the adaptive macro space, 1 elsewhere). Any other value is
+/// without the adaptive macro space, 2 on its interfaces of 16 to 19
+/// nodes, 1 elsewhere). Any other value is
 /// INVALID_ARGUMENT.
 ///
 /// # Safety
