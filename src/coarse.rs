@@ -242,9 +242,7 @@ pub struct CoarseProblem {
     /// Exact `L` (lower triangle), for the refinement residuals.
     l_lower: SparseColMat<usize, f64>,
     /// `G` by columns.
-    g_ptr: Vec<usize>,
-    g_row: Vec<usize>,
-    g_val: Vec<f64>,
+    g: KernelCoupling,
     gamma: f64,
     factor: SparseCholesky,
     /// Cholesky factor of `S = Gᵀ L_γ⁻¹ G` (lower triangle, `n_kernel` square).
@@ -395,25 +393,9 @@ impl CoarseProblem {
                 }
             }
         }
-        let mut g_ptr = Vec::with_capacity(na + 1);
-        let mut g_row = Vec::new();
-        let mut g_val = Vec::new();
-        g_ptr.push(0);
-        for col in &mut g_cols {
-            col.sort_unstable_by_key(|&(r, _)| r);
-            for &(r, v) in col.iter() {
-                if g_row.len() > *g_ptr.last().expect("non-empty") && *g_row.last().expect("non-empty") == r {
-                    *g_val.last_mut().expect("non-empty") += v;
-                } else {
-                    g_row.push(r);
-                    g_val.push(v);
-                }
-            }
-            g_ptr.push(g_row.len());
-        }
-        drop(g_cols);
+        let g = KernelCoupling::from_columns(nf, g_cols);
         if na > 0 {
-            check_full_rank(na, &g_ptr, &g_row, &g_val, nf, kernel_owner, describe)?;
+            check_full_rank(&g, kernel_owner, describe)?;
         }
 
         // Exact L (symmetrised) and the augmented, regularised L_γ, on one
@@ -501,13 +483,13 @@ impl CoarseProblem {
         // elimination tree reaches from its rows), and B is kept for the
         // inner solves. Where B would not fit, S from full solves instead.
         let kernel_columns = if na > 0 {
-            KernelColumns::forward(&mut factor, nf, na, &g_ptr, &g_row, &g_val, MAX_KERNEL_COLUMN_VALUES)
+            KernelColumns::forward(&mut factor, &g, MAX_KERNEL_COLUMN_VALUES)
         } else {
             None
         };
         let s = match &kernel_columns {
             Some(b) => b.gram(na),
-            None => schur_by_solves(&mut factor, nf, na, &g_ptr, &g_row, &g_val),
+            None => schur_by_solves(&mut factor, &g),
         };
         // S's Cholesky factor, kept for two triangular solves per inner
         // solve: as many multiply-adds as a product with S⁻¹, without the
@@ -529,9 +511,7 @@ impl CoarseProblem {
             n_macro: nf,
             n_kernel: na,
             l_lower,
-            g_ptr,
-            g_row,
-            g_val,
+            g,
             gamma,
             factor,
             s_factor,
@@ -740,11 +720,11 @@ impl CoarseProblem {
         let nf = self.n_macro;
         let (yf, ya) = y.split_at_mut(nf);
         sym_matvec(&self.l_lower, &x[..nf], yf);
-        g_mul_into(&self.g_ptr, &self.g_row, &self.g_val, &x[nf..], &mut self.work_f);
+        self.g.mul_into(&x[nf..], &mut self.work_f);
         for (a, &b) in yf.iter_mut().zip(&self.work_f) {
             *a -= b;
         }
-        gt_mul_into(&self.g_ptr, &self.g_row, &self.g_val, &x[..nf], ya);
+        self.g.t_mul_into(&x[..nf], ya);
     }
 
     /// `res = rhs − A x`.
@@ -762,7 +742,7 @@ impl CoarseProblem {
         let (a, b) = rhs.split_at(nf);
         let (f, alpha) = out.split_at_mut(nf);
         // c = a + γ G b
-        g_mul_into(&self.g_ptr, &self.g_row, &self.g_val, b, &mut self.work_f);
+        self.g.mul_into(b, &mut self.work_f);
         for i in 0..nf {
             f[i] = a[i] + self.gamma * self.work_f[i];
         }
@@ -782,13 +762,13 @@ impl CoarseProblem {
             return;
         }
         self.factor.solve_in_place(f);
-        gt_mul_into(&self.g_ptr, &self.g_row, &self.g_val, f, &mut self.work_a);
+        self.g.t_mul_into(f, &mut self.work_a);
         for (w, &bi) in self.work_a.iter_mut().zip(b) {
             *w = bi - *w;
         }
         alpha.copy_from_slice(&self.work_a);
         cholesky_solve(&self.s_factor, alpha);
-        g_mul_into(&self.g_ptr, &self.g_row, &self.g_val, alpha, &mut self.work_f2);
+        self.g.mul_into(alpha, &mut self.work_f2);
         self.factor.solve_in_place(&mut self.work_f2);
         for (fi, &w) in f.iter_mut().zip(&self.work_f2) {
             *fi += w;
@@ -1023,20 +1003,77 @@ fn typical_scale(diag: &[f64]) -> f64 {
     *d.select_nth_unstable_by(mid, f64::total_cmp).1
 }
 
-/// `y = G x` for `G` stored by columns.
-fn g_mul_into(ptr: &[usize], row: &[usize], val: &[f64], x: &[f64], y: &mut [f64]) {
-    y.iter_mut().for_each(|v| *v = 0.0);
-    for (j, &xj) in x.iter().enumerate() {
-        for k in ptr[j]..ptr[j + 1] {
-            y[row[k]] += val[k] * xj;
-        }
-    }
+/// `G` (`n_macro × n_kernel`): the macro traces of the kernel modes, by
+/// columns (one per kernel mode), rows sorted and unique in each.
+struct KernelCoupling {
+    nrows: usize,
+    ptr: Vec<usize>,
+    row: Vec<usize>,
+    val: Vec<f64>,
 }
 
-/// `y = Gᵀ x` for `G` stored by columns.
-fn gt_mul_into(ptr: &[usize], row: &[usize], val: &[f64], x: &[f64], y: &mut [f64]) {
-    for (j, yj) in y.iter_mut().enumerate() {
-        *yj = (ptr[j]..ptr[j + 1]).map(|k| val[k] * x[row[k]]).sum();
+impl KernelCoupling {
+    /// From the entries of each column in any order, repeated rows summed.
+    fn from_columns(nrows: usize, mut cols: Vec<Vec<(usize, f64)>>) -> KernelCoupling {
+        let mut g = KernelCoupling {
+            nrows,
+            ptr: Vec::with_capacity(cols.len() + 1),
+            row: Vec::new(),
+            val: Vec::new(),
+        };
+        g.ptr.push(0);
+        for col in &mut cols {
+            col.sort_unstable_by_key(|&(r, _)| r);
+            let start = g.row.len();
+            for &(r, v) in col.iter() {
+                if g.row.len() > start && g.row.last() == Some(&r) {
+                    *g.val.last_mut().expect("an entry of this column") += v;
+                } else {
+                    g.row.push(r);
+                    g.val.push(v);
+                }
+            }
+            g.ptr.push(g.row.len());
+        }
+        g
+    }
+
+    fn ncols(&self) -> usize {
+        self.ptr.len() - 1
+    }
+
+    /// The entries `(row, value)` of column `j`.
+    fn col(&self, j: usize) -> impl Iterator<Item = (usize, f64)> + '_ {
+        let k = self.ptr[j]..self.ptr[j + 1];
+        self.row[k.clone()].iter().copied().zip(self.val[k].iter().copied())
+    }
+
+    /// `y = G x`.
+    fn mul_into(&self, x: &[f64], y: &mut [f64]) {
+        y.iter_mut().for_each(|v| *v = 0.0);
+        for (j, &xj) in x.iter().enumerate() {
+            for (r, v) in self.col(j) {
+                y[r] += v * xj;
+            }
+        }
+    }
+
+    /// `y = Gᵀ x`.
+    fn t_mul_into(&self, x: &[f64], y: &mut [f64]) {
+        for (j, yj) in y.iter_mut().enumerate() {
+            *yj = self.col(j).map(|(r, v)| v * x[r]).sum();
+        }
+    }
+
+    /// Columns `j0..j0 + w` into the column-major block `blk` (`nrows`
+    /// rows, `w` columns), zero elsewhere.
+    fn columns_into(&self, blk: &mut [f64], j0: usize) {
+        blk.iter_mut().for_each(|v| *v = 0.0);
+        for (c, col) in blk.chunks_mut(self.nrows.max(1)).enumerate() {
+            for (r, v) in self.col(j0 + c) {
+                col[r] = v;
+            }
+        }
     }
 }
 
@@ -1079,15 +1116,8 @@ impl KernelColumns {
     /// is solved as it would be alone: the same bits whatever the split).
     /// `None` where `B` would hold more than `cap` values (a half's share
     /// each, where the columns are split).
-    fn forward(
-        factor: &mut SparseCholesky,
-        nf: usize,
-        na: usize,
-        g_ptr: &[usize],
-        g_row: &[usize],
-        g_val: &[f64],
-        cap: usize,
-    ) -> Option<KernelColumns> {
+    fn forward(factor: &mut SparseCholesky, g: &KernelCoupling, cap: usize) -> Option<KernelColumns> {
+        let (nf, na) = (g.nrows, g.ncols());
         let starts: Vec<usize> = (0..na).step_by(SCHUR_BATCH).collect();
         let columns = |solver: &mut SparseCholesky, starts: &[usize], parts: usize| -> Option<KernelColumns> {
             let mut out = KernelColumns {
@@ -1100,7 +1130,7 @@ impl KernelColumns {
             for &j0 in starts {
                 let w = (na - j0).min(SCHUR_BATCH);
                 let blk = &mut block[..nf * w];
-                g_columns_into(blk, nf, j0, g_ptr, g_row, g_val);
+                g.columns_into(blk, j0);
                 solver.forward_columns(blk, w);
                 for col in blk.chunks(nf.max(1)).take(w) {
                     out.push_column(col);
@@ -1268,18 +1298,6 @@ impl KernelColumns {
     }
 }
 
-/// Columns `j0..j0 + w` of `G` (stored by columns) into the column-major
-/// block `blk` (`nf` rows, `w` columns), zero elsewhere.
-fn g_columns_into(blk: &mut [f64], nf: usize, j0: usize, g_ptr: &[usize], g_row: &[usize], g_val: &[f64]) {
-    blk.iter_mut().for_each(|v| *v = 0.0);
-    for (c, col) in blk.chunks_mut(nf.max(1)).enumerate() {
-        let j = j0 + c;
-        for k in g_ptr[j]..g_ptr[j + 1] {
-            col[g_row[k]] = g_val[k];
-        }
-    }
-}
-
 /// `work(solver, batches, parts)` on the batches `starts` of columns of
 /// `G`, split in two halves between `factor` and a copy of it on the
 /// rayon pool (`parts` = 2; 1 with a single batch or no copy): the halves'
@@ -1305,14 +1323,8 @@ fn on_two_solvers<T: Send>(
 /// split between the factor and a copy of it on the rayon pool: where `B`
 /// does not fit ([`MAX_KERNEL_COLUMN_VALUES`]). The same bits whatever the
 /// split.
-fn schur_by_solves(
-    factor: &mut SparseCholesky,
-    nf: usize,
-    na: usize,
-    g_ptr: &[usize],
-    g_row: &[usize],
-    g_val: &[f64],
-) -> Mat<f64> {
+fn schur_by_solves(factor: &mut SparseCholesky, g: &KernelCoupling) -> Mat<f64> {
+    let (nf, na) = (g.nrows, g.ncols());
     let starts: Vec<usize> = (0..na).step_by(SCHUR_BATCH).collect();
     let schur_columns = |solver: &mut SparseCholesky, starts: &[usize], _parts: usize| -> Vec<f64> {
         let mut cols = Vec::with_capacity(starts.len() * SCHUR_BATCH * na);
@@ -1320,11 +1332,13 @@ fn schur_by_solves(
         for &j0 in starts {
             let w = (na - j0).min(SCHUR_BATCH);
             let blk = &mut block[..nf * w];
-            g_columns_into(blk, nf, j0, g_ptr, g_row, g_val);
+            g.columns_into(blk, j0);
             solver.solve_columns(blk, w);
             for c in 0..w {
                 let y = &blk[c * nf..(c + 1) * nf];
-                cols.extend((0..na).map(|i| (g_ptr[i]..g_ptr[i + 1]).map(|k| g_val[k] * y[g_row[k]]).sum::<f64>()));
+                let at = cols.len();
+                cols.resize(at + na, 0.0);
+                g.t_mul_into(y, &mut cols[at..]);
             }
         }
         cols
@@ -1400,19 +1414,12 @@ pub(crate) fn is_unrestrained_mode(e: &Error) -> bool {
 /// Fails with a named subdomain when `G` has a (numerically) dependent
 /// column. `GᵀG` is formed row by row of `G`: a row holds the kernel modes
 /// of the two subdomains of one interface only.
-fn check_full_rank(
-    na: usize,
-    ptr: &[usize],
-    row: &[usize],
-    val: &[f64],
-    nf: usize,
-    owner: &[usize],
-    describe: &dyn Fn(&[f64]) -> String,
-) -> Result<()> {
-    let mut rows: Vec<Vec<(usize, f64)>> = vec![Vec::new(); nf];
+fn check_full_rank(g: &KernelCoupling, owner: &[usize], describe: &dyn Fn(&[f64]) -> String) -> Result<()> {
+    let na = g.ncols();
+    let mut rows: Vec<Vec<(usize, f64)>> = vec![Vec::new(); g.nrows];
     for j in 0..na {
-        for k in ptr[j]..ptr[j + 1] {
-            rows[row[k]].push((j, val[k]));
+        for (r, v) in g.col(j) {
+            rows[r].push((j, v));
         }
     }
     // The usual case, full rank, on the sparse GᵀG (it couples only the
@@ -1562,16 +1569,14 @@ mod tests {
         let lower = lower_csc(nf, &t).unwrap();
         let mut factor = SparseCholesky::factor(&lower, SCHUR_BATCH).unwrap();
         let na = 70;
-        let (mut g_ptr, mut g_row, mut g_val) = (vec![0], Vec::new(), Vec::new());
-        for q in 0..na {
-            let r0 = (q * 37) % (nf - 3);
-            for r in r0..r0 + 3 {
-                g_row.push(r);
-                g_val.push(1.0 + 0.1 * (q + r) as f64 % 1.0);
-            }
-            g_ptr.push(g_row.len());
-        }
-        let b = KernelColumns::forward(&mut factor, nf, na, &g_ptr, &g_row, &g_val, usize::MAX).unwrap();
+        let cols: Vec<Vec<(usize, f64)>> = (0..na)
+            .map(|q| {
+                let r0 = (q * 37) % (nf - 3);
+                (r0..r0 + 3).map(|r| (r, 1.0 + 0.1 * (q + r) as f64 % 1.0)).collect()
+            })
+            .collect();
+        let g = KernelCoupling::from_columns(nf, cols);
+        let b = KernelColumns::forward(&mut factor, &g, usize::MAX).unwrap();
         assert!(
             b.val.len() < nf * na / 2,
             "B is sparse here: {} of {}",
@@ -1579,7 +1584,7 @@ mod tests {
             nf * na
         );
         let s = b.gram(na);
-        let s_ref = schur_by_solves(&mut factor, nf, na, &g_ptr, &g_row, &g_val);
+        let s_ref = schur_by_solves(&mut factor, &g);
         let scale = (0..na).map(|i| s_ref[(i, i)]).fold(0.0, f64::max);
         for i in 0..na {
             for j in 0..na {
@@ -1594,7 +1599,7 @@ mod tests {
         b.mul_add(&alpha, &mut f);
         factor.backward_columns(&mut f, 1);
         let mut f_ref = vec![0.0; nf];
-        g_mul_into(&g_ptr, &g_row, &g_val, &alpha, &mut f_ref);
+        g.mul_into(&alpha, &mut f_ref);
         f_ref.iter_mut().zip(&c).for_each(|(x, &ci)| *x += ci);
         factor.solve_in_place(&mut f_ref);
         let fmax = f_ref.iter().fold(0.0f64, |a, v| a.max(v.abs()));
@@ -1609,12 +1614,30 @@ mod tests {
         let mut y = c.clone();
         factor.solve_in_place(&mut y);
         let mut gt = vec![0.0; na];
-        gt_mul_into(&g_ptr, &g_row, &g_val, &y, &mut gt);
+        g.t_mul_into(&y, &mut gt);
         let gmax = gt.iter().fold(0.0f64, |a, v| a.max(v.abs()));
         for (x, y) in bt.iter().zip(&gt) {
             assert!((x - y).abs() <= 1e-13 * gmax);
         }
-        assert!(KernelColumns::forward(&mut factor, nf, na, &g_ptr, &g_row, &g_val, 100).is_none());
+        assert!(KernelColumns::forward(&mut factor, &g, 100).is_none());
+    }
+
+    /// `G` from unsorted columns with repeated rows: sorted, the repeats
+    /// summed, and its products and column blocks those of the dense `G`.
+    #[test]
+    fn kernel_coupling_sums_repeated_rows() {
+        let g = KernelCoupling::from_columns(4, vec![vec![(3, 1.0), (0, 2.0), (3, 0.5)], vec![], vec![(1, -1.0)]]);
+        assert_eq!(g.ncols(), 3);
+        assert_eq!(g.col(0).collect::<Vec<_>>(), vec![(0, 2.0), (3, 1.5)]);
+        let mut y = [9.0; 4];
+        g.mul_into(&[1.0, 5.0, 2.0], &mut y);
+        assert_eq!(y, [2.0, -2.0, 0.0, 1.5]);
+        let mut z = [9.0; 3];
+        g.t_mul_into(&[1.0, 1.0, 0.0, 2.0], &mut z);
+        assert_eq!(z, [5.0, 0.0, -1.0]);
+        let mut blk = [7.0; 8];
+        g.columns_into(&mut blk, 1);
+        assert_eq!(blk, [0.0, 0.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0]);
     }
 
     /// The assembled `L` and `L_γ` are the sums of the subdomains' blocks
