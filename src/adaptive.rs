@@ -42,7 +42,7 @@ use crate::error::{Error, Result};
 use crate::model::Model;
 use crate::scaling::Edges;
 use crate::settings::{AdaptiveEdges, AdaptiveThreshold};
-use crate::subdomain::{orthonormal_columns, InteriorProblem, SubdomainOperator};
+use crate::subdomain::{orthonormal_columns, subtract_gram_of, InteriorProblem, SubdomainOperator};
 use faer::linalg::solvers::DenseSolveCore;
 use faer::Mat;
 use rayon::prelude::*;
@@ -405,32 +405,12 @@ fn lower_solve(llt: &faer::linalg::solvers::Llt<f64>, x: &mut Mat<f64>) {
     faer::linalg::triangular_solve::solve_lower_triangular_in_place(llt.L(), x.as_mut(), faer::Par::Seq);
 }
 
-/// `a − xᵀ x` for symmetric `a`: the lower triangle by a triangular
-/// product (half the flops of the full one), then mirrored.
+/// `a − xᵀ x` for symmetric `a` (the lower triangle by a triangular
+/// product, then mirrored).
 fn minus_gram(a: &Mat<f64>, x: &Mat<f64>) -> Mat<f64> {
     let mut out = a.clone();
-    faer::linalg::matmul::triangular::matmul(
-        out.as_mut(),
-        faer::linalg::matmul::triangular::BlockStructure::TriangularLower,
-        faer::Accum::Add,
-        x.transpose(),
-        faer::linalg::matmul::triangular::BlockStructure::Rectangular,
-        x.as_ref(),
-        faer::linalg::matmul::triangular::BlockStructure::Rectangular,
-        -1.0,
-        faer::Par::Seq,
-    );
-    mirror_lower(&mut out);
+    subtract_gram_of(&mut out, x.as_ref());
     out
-}
-
-/// Copies the lower triangle of the square `a` onto its upper one.
-fn mirror_lower(a: &mut Mat<f64>) {
-    for j in 0..a.ncols() {
-        for i in 0..j {
-            a[(i, j)] = a[(j, i)];
-        }
-    }
 }
 
 /// `Π a Π` for the projector `Π = I − k kᵀ` off the orthonormal columns

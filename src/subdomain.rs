@@ -1525,7 +1525,12 @@ fn subtract_interior_part(
 /// the full one), then mirrored. `S` must be symmetric on entry.
 fn subtract_gram(s: &mut Mat<f64>, w: &[f64], rows: usize) {
     let cols = s.ncols();
-    let wc = faer::MatRef::from_column_major_slice(&w[..rows * cols], rows, cols);
+    subtract_gram_of(s, faer::MatRef::from_column_major_slice(&w[..rows * cols], rows, cols));
+}
+
+/// [`subtract_gram`] for `W` as a matrix view.
+pub(crate) fn subtract_gram_of(s: &mut Mat<f64>, wc: faer::MatRef<'_, f64>) {
+    let cols = s.ncols();
     faer::linalg::matmul::triangular::matmul(
         s.as_mut(),
         faer::linalg::matmul::triangular::BlockStructure::TriangularLower,
