@@ -1065,6 +1065,29 @@ impl KernelCoupling {
         }
     }
 
+    /// The first column of each batch of [`SCHUR_BATCH`] columns.
+    fn batch_starts(&self) -> Vec<usize> {
+        (0..self.ncols()).step_by(SCHUR_BATCH).collect()
+    }
+
+    /// `each(block, w)` for the batches of columns from `starts`
+    /// ([`Self::batch_starts`]), each scattered into a column-major block
+    /// (`nrows × w`, `w` up to [`SCHUR_BATCH`]); stops at the first `false`
+    /// (returned then, `true` otherwise).
+    fn for_each_batch(&self, starts: &[usize], mut each: impl FnMut(&mut [f64], usize) -> bool) -> bool {
+        let nf = self.nrows;
+        let mut block = vec![0.0; nf * SCHUR_BATCH];
+        for &j0 in starts {
+            let w = (self.ncols() - j0).min(SCHUR_BATCH);
+            let blk = &mut block[..nf * w];
+            self.columns_into(blk, j0);
+            if !each(blk, w) {
+                return false;
+            }
+        }
+        true
+    }
+
     /// Columns `j0..j0 + w` into the column-major block `blk` (`nrows`
     /// rows, `w` columns), zero elsewhere.
     fn columns_into(&self, blk: &mut [f64], j0: usize) {
@@ -1117,8 +1140,8 @@ impl KernelColumns {
     /// `None` where `B` would hold more than `cap` values (a half's share
     /// each, where the columns are split).
     fn forward(factor: &mut SparseCholesky, g: &KernelCoupling, cap: usize) -> Option<KernelColumns> {
-        let (nf, na) = (g.nrows, g.ncols());
-        let starts: Vec<usize> = (0..na).step_by(SCHUR_BATCH).collect();
+        let nf = g.nrows;
+        let starts = g.batch_starts();
         let columns = |solver: &mut SparseCholesky, starts: &[usize], parts: usize| -> Option<KernelColumns> {
             let mut out = KernelColumns {
                 ptr: Vec::with_capacity(starts.len() * SCHUR_BATCH + 1),
@@ -1126,20 +1149,17 @@ impl KernelColumns {
                 val: Vec::new(),
             };
             out.ptr.push(0);
-            let mut block = vec![0.0; nf * SCHUR_BATCH];
-            for &j0 in starts {
-                let w = (na - j0).min(SCHUR_BATCH);
-                let blk = &mut block[..nf * w];
-                g.columns_into(blk, j0);
+            let fits = g.for_each_batch(starts, |blk, w| {
                 solver.forward_columns(blk, w);
                 for col in blk.chunks(nf.max(1)).take(w) {
                     out.push_column(col);
                     if out.val.len() > cap / parts {
-                        return None;
+                        return false;
                     }
                 }
-            }
-            Some(out)
+                true
+            });
+            fits.then_some(out)
         };
         let (a, b) = on_two_solvers(factor, &starts, columns);
         let mut a = a?;
@@ -1325,22 +1345,18 @@ fn on_two_solvers<T: Send>(
 /// split.
 fn schur_by_solves(factor: &mut SparseCholesky, g: &KernelCoupling) -> Mat<f64> {
     let (nf, na) = (g.nrows, g.ncols());
-    let starts: Vec<usize> = (0..na).step_by(SCHUR_BATCH).collect();
+    let starts = g.batch_starts();
     let schur_columns = |solver: &mut SparseCholesky, starts: &[usize], _parts: usize| -> Vec<f64> {
         let mut cols = Vec::with_capacity(starts.len() * SCHUR_BATCH * na);
-        let mut block = vec![0.0; nf * SCHUR_BATCH];
-        for &j0 in starts {
-            let w = (na - j0).min(SCHUR_BATCH);
-            let blk = &mut block[..nf * w];
-            g.columns_into(blk, j0);
+        g.for_each_batch(starts, |blk, w| {
             solver.solve_columns(blk, w);
-            for c in 0..w {
-                let y = &blk[c * nf..(c + 1) * nf];
+            for y in blk.chunks(nf.max(1)).take(w) {
                 let at = cols.len();
                 cols.resize(at + na, 0.0);
                 g.t_mul_into(y, &mut cols[at..]);
             }
-        }
+            true
+        });
         cols
     };
     let (mut cols, rest) = on_two_solvers(factor, &starts, schur_columns);
