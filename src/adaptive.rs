@@ -565,7 +565,7 @@ pub fn enrich(p: Mat<f64>, face: &[usize], lo: &FaceSide, hi: &FaceSide, theta: 
 /// (S̃_lo : S̃_hi) z` whose eigenvalue exceeds `theta`.
 pub fn face_modes(lo: &FaceSide, hi: &FaceSide, p: &Mat<f64>, theta: f64) -> Result<Mat<f64>> {
     let n = p.nrows();
-    let fail = || Error::Numerical("adaptive macro space: a face eigensolve failed".into());
+    let fail = face_eigensolve_failed;
     if n == 0 {
         return Ok(Mat::zeros(0, 0));
     }
@@ -574,11 +574,16 @@ pub fn face_modes(lo: &FaceSide, hi: &FaceSide, p: &Mat<f64>, theta: f64) -> Res
     face_modes_projected(&a, &b, p, theta).unwrap_or_else(|| face_modes_by_complement(&a, &b, p, theta))
 }
 
+/// The error of a face whose eigenproblem could not be solved.
+fn face_eigensolve_failed() -> Error {
+    Error::Numerical("adaptive macro space: a face eigensolve failed".into())
+}
+
 /// [`face_modes`] from the parallel sums `a` and `b` through an orthonormal
 /// basis `Q` of the complement of `p`'s span, the inverse root of `Qᵀ b Q`
 /// by an eigendecomposition where it is singular or nearly so.
 fn face_modes_by_complement(a: &Mat<f64>, b: &Mat<f64>, p: &Mat<f64>, theta: f64) -> Result<Mat<f64>> {
-    let fail = || Error::Numerical("adaptive macro space: a face eigensolve failed".into());
+    let fail = face_eigensolve_failed;
     // Q: orthonormal complement of the span of p.
     let q = complement(p);
     let aq = symmetrize(&(q.transpose() * a * &q));
@@ -616,9 +621,7 @@ fn face_modes_projected(a: &Mat<f64>, b: &Mat<f64>, p: &Mat<f64>, theta: f64) ->
     lower_solve(&llt, &mut c);
     let c = symmetrize(&c);
     let Ok(evd) = c.self_adjoint_eigen(faer::Side::Lower) else {
-        return Some(Err(Error::Numerical(
-            "adaptive macro space: a face eigensolve failed".into(),
-        )));
+        return Some(Err(face_eigensolve_failed()));
     };
     let (v, lam) = (evd.U(), evd.S().column_vector());
     let picked: Vec<usize> = (0..c.nrows()).filter(|&j| lam[j] > theta).collect();
