@@ -406,7 +406,7 @@ impl<'de> Deserialize<'de> for AdaptiveEdges {
 /// the 30 columns of degree 3 make the coarse problem a large part of the
 /// interface (13 % of the 65² plate's dofs with 64 subdomains), and cg
 /// took 1.2–2.3× longer with them although its iterations fell 2–3×; the
-/// 18 of degree 2 pay on faces of 14 nodes or more. On
+/// 18 of degree 2 pay on faces of 16 nodes or more. On
 /// 3D towers the added columns cost more coarse work than they save; with
 /// the adaptive space (stiffness contrast) they broke `cg` down; and the
 /// stationary `multilevel` stops on a floor near 1.7e-12 with them on the
