@@ -1086,7 +1086,7 @@ fn scene_level_cg_matches_rust_api_bit_for_bit() {
             nsdd_result_destroy(r);
         }
         expect_err(
-            nsdd_options_set_macro_degree(o, 4),
+            nsdd_options_set_macro_degree(o, 5),
             NsddStatus::InvalidArgument,
             "macro_degree",
         );

@@ -582,7 +582,9 @@ fn assert_displacements_near_direct(model: &Model, u: &[f64], what: &str) {
 /// in 16 (faces of 16–18 nodes) it picks degree 2 and well under the
 /// iterations of degree 1 (14 and 25 when written); on a 40² plate cut
 /// in 4 (interfaces of ~40 nodes) it picks 3 on the large interfaces and
-/// cuts the iterations; on a uniform tower it keeps 1, with the bits of
+/// cuts the iterations; on an 88² plate cut in 4 (faces of ~88 nodes,
+/// above `QUARTIC_FACE_NODES`) it picks 4 there, with fewer iterations
+/// than degree 3; on a uniform tower it keeps 1, with the bits of
 /// degree 1.
 #[test]
 fn polynomial_macro_fields_cut_the_plate_iterations() {
@@ -629,6 +631,16 @@ fn polynomial_macro_fields_cut_the_plate_iterations() {
         "{polynomial} of {interfaces} interfaces at degree 3: the 4 faces, not the cross points"
     );
     assert!(it_auto < it1, "iterations: degree 1 {it1}, auto {it_auto}");
+    let wide = grid_scene(88, false);
+    let (it3, _, m3, _) = run(&wide, 4, MacroDegree::Fixed(3));
+    let (it_auto, (degree, polynomial, interfaces), m_auto, _) = run(&wide, 4, MacroDegree::Auto);
+    assert_eq!(degree, 4, "faces of 80 nodes or more take the quartic fields");
+    assert!(
+        (4..interfaces).contains(&polynomial),
+        "{polynomial} of {interfaces} interfaces polynomial: the 4 faces, not the cross points"
+    );
+    assert!(m_auto > m3, "macro unknowns: degree 3 {m3}, auto {m_auto}");
+    assert!(it_auto < it3, "iterations: degree 3 {it3}, auto {it_auto}");
     let tower_scene = tower(&TowerParams {
         nx: 4,
         ny: 4,

@@ -531,12 +531,13 @@ pub unsafe extern "C" fn nsdd_options_set_adaptive_edges_auto(options: *mut Nsdd
 
 /// Sets the degree of the polynomial fields in each interface's macro
 /// basis (`multilevel` and `cg`), overriding the scene's `[solver]
-/// macro_degree`: 1 (rigid motions and in-plane extensions), 2 or 3 (the
-/// quadratic, then cubic, fields per component added: on plates `cg` takes
-/// about half the iterations); 0 lets the solver choose (the default: 3
-/// for `cg` on the interfaces of 20 nodes or more of a flat structure
-/// without the adaptive macro space, 2 on its interfaces of 16 to 19
-/// nodes, 1 elsewhere). Any other value is
+/// macro_degree`: 1 (rigid motions and in-plane extensions), 2, 3 or 4
+/// (the quadratic, cubic, then quartic fields per component added: on
+/// plates `cg` takes about half the iterations); 0 lets the solver choose
+/// (the default: 4 for `cg` on the interfaces of 80 nodes or more of a
+/// flat structure without the adaptive macro space, 3 on its interfaces
+/// of 20 to 79 nodes, 2 on those of 16 to 19, 1 elsewhere). Any other
+/// value is
 /// INVALID_ARGUMENT.
 ///
 /// # Safety
@@ -550,7 +551,7 @@ pub unsafe extern "C" fn nsdd_options_set_macro_degree(options: *mut NsddOptions
             d => u8::try_from(d)
                 .ok()
                 .and_then(crate::settings::MacroDegree::fixed)
-                .ok_or_else(|| invalid(format!("macro_degree = {degree}: expected 0 (auto), 1, 2 or 3")))?,
+                .ok_or_else(|| invalid(format!("macro_degree = {degree}: expected 0 (auto) or 1 to 4")))?,
         };
         Ok(())
     })
