@@ -812,8 +812,8 @@ fn pvd_series_is_well_formed() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
-/// `[solver] macro_degree`: `"auto"` (the default) is not written, 1, 2
-/// and 3 are read back, anything else is refused naming the field.
+/// `[solver] macro_degree`: `"auto"` (the default) is not written, 1 to
+/// 4 are read back, anything else is refused naming the field.
 #[test]
 fn macro_degree_round_trips_and_refuses_other_values() {
     use nsdd::settings::MacroDegree;
@@ -824,6 +824,7 @@ fn macro_degree_round_trips_and_refuses_other_values() {
     for (v, text) in [
         (MacroDegree::Fixed(1), "macro_degree = 1"),
         (MacroDegree::Fixed(2), "macro_degree = 2"),
+        (MacroDegree::Fixed(4), "macro_degree = 4"),
         (MacroDegree::Fixed(3), "macro_degree = 3"),
     ] {
         scene.solver.macro_degree = v;
@@ -837,7 +838,7 @@ fn macro_degree_round_trips_and_refuses_other_values() {
         Scene::from_toml_str(&auto).unwrap().solver.macro_degree,
         MacroDegree::Auto
     );
-    for bad in ["macro_degree = 4", "macro_degree = 0", "macro_degree = \"cubic\""] {
+    for bad in ["macro_degree = 5", "macro_degree = 0", "macro_degree = \"cubic\""] {
         let err = Scene::from_toml_str(&toml.replace("macro_degree = 3", bad))
             .unwrap_err()
             .to_string();
