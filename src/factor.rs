@@ -927,8 +927,10 @@ fn perm_buffer(symbolic: &SymbolicCholesky<usize>, k: usize) -> Vec<f64> {
 /// `X ← L⁻¹ X` for a supernodal factor, on column-major `x` (`n × w`),
 /// as faer's `l_solve_with_conj` does it (same operations, same bits) but
 /// skipping the supernodes whose rows of `X` are all zero, which leave `X`
-/// unchanged: see [`forward_skipping_zeros`]. `tmp` holds the largest
-/// supernode pattern times `w`. No allocation.
+/// unchanged: see [`forward_skipping_zeros`]. One column (`w = 1`) takes
+/// [`supernode_sweep_one`] instead: faer's answer to round-off, not its
+/// bits. `tmp` holds the largest supernode pattern times `w`. No
+/// allocation.
 fn supernodal_forward_skipping_zeros(
     sym: &SymbolicSupernodalCholesky<usize>,
     values: &[f64],
@@ -945,27 +947,39 @@ fn supernodal_forward_skipping_zeros(
         if (0..w).all(|c| x[c * n + start..c * n + start + size].iter().all(|&v| v == 0.0)) {
             continue;
         }
-        let (top, bot) = ls.split_at_row(size);
         let pattern = sn.pattern();
         let np = pattern.len();
+        if w == 1 {
+            // One right-hand side (every solve of an iteration): the rows
+            // below the diagonal block gathered, and one column sweep over
+            // the whole supernode. faer's recursive kernel did the diagonal
+            // block at a quarter of the speed of its transposed (backward)
+            // one, and its product with the rows below cost a call and a
+            // pass over a temporary per supernode.
+            let below = &mut tmp[..np];
+            for (g, &i) in below.iter_mut().zip(pattern) {
+                // SAFETY: supernode patterns hold row indices below n
+                // (faer's symbolic invariant) and x has n values (w = 1).
+                *g = unsafe { *x.get_unchecked(i) };
+            }
+            supernode_sweep_one(ls, &mut x[start..start + size], below);
+            for (&g, &i) in below.iter().zip(pattern) {
+                // SAFETY: as above.
+                unsafe { *x.get_unchecked_mut(i) = g };
+            }
+            continue;
+        }
+        let (top, bot) = ls.split_at_row(size);
         let mut t = MatMut::from_column_major_slice_mut(&mut tmp[..np * w], np, w);
         {
             let mut xm = MatMut::from_column_major_slice_mut(&mut *x, n, w);
             let mut x_top = xm.rb_mut().subrows_mut(start, size);
-            if w == 1 {
-                // One right-hand side (every solve of an iteration): column
-                // sweeps over the diagonal block, which faer's recursive
-                // kernel did at a quarter of the speed of its transposed
-                // (backward) one.
-                lower_solve_one_column(top, x_top.rb_mut().col_mut(0));
-            } else {
-                faer::linalg::triangular_solve::solve_lower_triangular_in_place_with_conj(
-                    top,
-                    Conj::No,
-                    x_top.rb_mut(),
-                    Par::Seq,
-                );
-            }
+            faer::linalg::triangular_solve::solve_lower_triangular_in_place_with_conj(
+                top,
+                Conj::No,
+                x_top.rb_mut(),
+                Par::Seq,
+            );
             faer::linalg::matmul::matmul_with_conj(
                 t.rb_mut(),
                 faer::Accum::Replace,
@@ -990,48 +1004,80 @@ fn supernodal_forward_skipping_zeros(
     }
 }
 
-/// `x ← T⁻¹ x` for the lower triangle of the dense block `t` (column
-/// major): one sweep over its columns, each an `axpy` on a contiguous
-/// slice. Not faer's bits; used for single right-hand sides only.
-/// The element-wise operations are the same on every path (no fused
-/// multiply-add, no reassociation: each `x_i` takes its updates in column
-/// order), so the AVX2 path gives the bits of the plain one.
-fn lower_solve_one_column(t: faer::MatRef<'_, f64>, mut x: faer::ColMut<'_, f64>) {
-    let size = t.nrows();
-    let x = x
-        .rb_mut()
-        .try_as_col_major_mut()
-        .expect("contiguous column")
-        .as_slice_mut();
-    let cols = (0..size).map(|j| t.col(j).try_as_col_major().expect("column-major supernode").as_slice());
+/// `x ← L_s⁻¹ x` through one supernode `ls` (column major, `size` columns
+/// of `size + below.len()` rows: the diagonal block, then the rows of its
+/// pattern): `top` holds the supernode's own rows of `x` and is solved in
+/// place, `below` the pattern's rows (gathered) and takes their updates.
+/// A column sweep, four columns per pass over the rows: each entry takes
+/// its updates in column order, one subtraction at a time (no fused
+/// multiply-add, no reassociation), so the AVX2 path gives the bits of
+/// the plain one. Not faer's bits; single right-hand sides only.
+fn supernode_sweep_one(ls: faer::MatRef<'_, f64>, top: &mut [f64], below: &mut [f64]) {
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx2") {
         // SAFETY: the CPU has AVX2 (checked just above).
-        unsafe { lower_sweep_avx2(cols, x) };
+        unsafe { supernode_sweep_avx2(ls, top, below) };
         return;
     }
-    lower_sweep(cols, x);
+    supernode_sweep(ls, top, below);
 }
 
-/// The column sweep of [`lower_solve_one_column`].
+/// The sweep of [`supernode_sweep_one`].
 #[inline(always)]
-fn lower_sweep<'a>(cols: impl Iterator<Item = &'a [f64]>, x: &mut [f64]) {
-    for (j, col) in cols.enumerate() {
-        let xj = x[j] / col[j];
-        x[j] = xj;
-        if xj != 0.0 {
-            for (xi, &lij) in x[j + 1..].iter_mut().zip(&col[j + 1..]) {
-                *xi -= lij * xj;
+fn supernode_sweep(ls: faer::MatRef<'_, f64>, top: &mut [f64], below: &mut [f64]) {
+    let size = top.len();
+    let col = |j: usize| ls.col(j).try_as_col_major().expect("column-major supernode").as_slice();
+    let mut j = 0;
+    while j + 4 <= size {
+        let (c0, c1, c2, c3) = (col(j), col(j + 1), col(j + 2), col(j + 3));
+        // The 4 × 4 diagonal triangle, in the order of a single sweep.
+        let a = top[j] / c0[j];
+        let b = (top[j + 1] - c0[j + 1] * a) / c1[j + 1];
+        let c = ((top[j + 2] - c0[j + 2] * a) - c1[j + 2] * b) / c2[j + 2];
+        let d = (((top[j + 3] - c0[j + 3] * a) - c1[j + 3] * b) - c2[j + 3] * c) / c3[j + 3];
+        top[j..j + 4].copy_from_slice(&[a, b, c, d]);
+        if a != 0.0 || b != 0.0 || c != 0.0 || d != 0.0 {
+            let (r, m) = (j + 4, size);
+            sweep_rows4(
+                &mut top[r..],
+                [&c0[r..m], &c1[r..m], &c2[r..m], &c3[r..m]],
+                [a, b, c, d],
+            );
+            sweep_rows4(below, [&c0[m..], &c1[m..], &c2[m..], &c3[m..]], [a, b, c, d]);
+        }
+        j += 4;
+    }
+    while j < size {
+        let c0 = col(j);
+        let a = top[j] / c0[j];
+        top[j] = a;
+        if a != 0.0 {
+            for (v, &l) in top[j + 1..].iter_mut().zip(&c0[j + 1..size]) {
+                *v -= l * a;
+            }
+            for (v, &l) in below.iter_mut().zip(&c0[size..]) {
+                *v -= l * a;
             }
         }
+        j += 1;
     }
 }
 
-/// [`lower_sweep`] compiled for AVX2 (4 lanes instead of SSE2's 2).
+/// `v_i ← (((v_i − l0_i a) − l1_i b) − l2_i c) − l3_i d` over the rows.
+#[inline(always)]
+fn sweep_rows4(v: &mut [f64], l: [&[f64]; 4], x: [f64; 4]) {
+    let n = v.len();
+    let (l0, l1, l2, l3) = (&l[0][..n], &l[1][..n], &l[2][..n], &l[3][..n]);
+    for i in 0..n {
+        v[i] = (((v[i] - l0[i] * x[0]) - l1[i] * x[1]) - l2[i] * x[2]) - l3[i] * x[3];
+    }
+}
+
+/// [`supernode_sweep`] compiled for AVX2 (4 lanes instead of SSE2's 2).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-unsafe fn lower_sweep_avx2<'a>(cols: impl Iterator<Item = &'a [f64]>, x: &mut [f64]) {
-    lower_sweep(cols, x)
+unsafe fn supernode_sweep_avx2(ls: faer::MatRef<'_, f64>, top: &mut [f64], below: &mut [f64]) {
+    supernode_sweep(ls, top, below)
 }
 
 /// `X ← L⁻¹ X` for a simplicial factor in CSC (diagonal first in each
@@ -1348,7 +1394,7 @@ mod tests {
         lower_csc(n, &trip).unwrap()
     }
 
-    /// A single right-hand side takes the column-sweep kernel: faer's
+    /// A single right-hand side takes the supernode sweep: faer's
     /// solution to round-off, and the same bits on the AVX2 path as on the
     /// plain one.
     #[test]
@@ -1372,26 +1418,46 @@ mod tests {
         let size = faers.iter().fold(0.0f64, |m, v| m.max(v.abs()));
         let diff = ours.iter().zip(&faers).fold(0.0f64, |m, (x, y)| m.max((x - y).abs()));
         assert!(diff <= 1e-13 * size, "{diff:e} against {size:e}");
-        // The sweep on a dense lower triangle, both paths.
-        let m = 37;
-        let t = faer::Mat::<f64>::from_fn(m, m, |i, j| {
+        // The sweep on a dense supernode (a 37-column diagonal block over
+        // 11 rows below it, so both the four-column passes and the last
+        // single columns run), both paths: the same bits, and the solution
+        // of the block with the rows below updated as a product would.
+        let (m, below_rows) = (37, 11);
+        let t = faer::Mat::<f64>::from_fn(m + below_rows, m, |i, j| {
             if i == j {
                 2.0 + i as f64
-            } else {
+            } else if i > j {
                 1.0 / (1 + i + j) as f64
+            } else {
+                0.0
             }
         });
-        let cols = || (0..m).map(|j| t.col(j).try_as_col_major().unwrap().as_slice());
-        let mut plain: Vec<f64> = (0..m).map(|i| (i as f64).sin()).collect();
-        let mut wide = plain.clone();
-        lower_sweep(cols(), &mut plain);
+        let top0: Vec<f64> = (0..m).map(|i| (i as f64).sin()).collect();
+        let below0: Vec<f64> = (0..below_rows).map(|i| (i as f64).cos()).collect();
+        let (mut top, mut below) = (top0.clone(), below0.clone());
+        supernode_sweep(t.as_ref(), &mut top, &mut below);
+        let diag = t.as_ref().subrows(0, m);
+        let back: Vec<f64> = (0..m)
+            .map(|i| (0..=i).map(|j| diag[(i, j)] * top[j]).sum::<f64>())
+            .collect();
+        let err = back.iter().zip(&top0).fold(0.0f64, |e, (x, y)| e.max((x - y).abs()));
+        assert!(err < 1e-14, "triangle: {err:e}");
+        for r in 0..below_rows {
+            let want = below0[r] - (0..m).map(|j| t[(m + r, j)] * top[j]).sum::<f64>();
+            assert!(
+                (below[r] - want).abs() < 1e-14,
+                "row {r} below: {} against {want}",
+                below[r]
+            );
+        }
         #[cfg(target_arch = "x86_64")]
         if std::arch::is_x86_feature_detected!("avx2") {
+            let (mut wide_top, mut wide_below) = (top0.clone(), below0.clone());
             // SAFETY: AVX2 checked.
-            unsafe { lower_sweep_avx2(cols(), &mut wide) };
-            assert!(plain.iter().zip(&wide).all(|(x, y)| x.to_bits() == y.to_bits()));
+            unsafe { supernode_sweep_avx2(t.as_ref(), &mut wide_top, &mut wide_below) };
+            let same = |a: &[f64], b: &[f64]| a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits());
+            assert!(same(&top, &wide_top) && same(&below, &wide_below));
         }
-        let _ = &mut wide;
     }
 
     /// The analysis made while choosing the order is the one the
