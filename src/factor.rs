@@ -462,6 +462,11 @@ impl SparseCholesky {
     /// order.
     fn backward_in_perm_buf(&mut self, w: usize) {
         let n = self.n;
+        if let (1, SymbolicCholeskyRaw::Supernodal(sym)) = (w, self.symbolic.raw()) {
+            let (x, tmp) = self.perm_buf.split_at_mut(n * self.scratch_cols);
+            supernodal_backward_one(sym, &self.l_values, &mut x[..n], tmp);
+            return;
+        }
         let xm = MatMut::from_column_major_slice_mut(&mut self.perm_buf[..n * w], n, w);
         match self.symbolic.raw() {
             SymbolicCholeskyRaw::Simplicial(sym) => {
@@ -1080,6 +1085,121 @@ unsafe fn supernode_sweep_avx2(ls: faer::MatRef<'_, f64>, top: &mut [f64], below
     supernode_sweep(ls, top, below)
 }
 
+/// `x ← L⁻ᵀ x` for a supernodal factor and one right-hand side, supernodes
+/// last to first: each gathers its pattern's rows of `x` (already solved)
+/// into `tmp` and solves its own rows by [`supernode_back_sweep`]. Faer's
+/// answer to round-off, not its bits; its kernel spent more than half of
+/// this in a product call and a temporary per supernode. No allocation.
+fn supernodal_backward_one(sym: &SymbolicSupernodalCholesky<usize>, values: &[f64], x: &mut [f64], tmp: &mut [f64]) {
+    let l = SupernodalLltRef::<'_, usize, f64>::new(sym, values);
+    for s in (0..sym.n_supernodes()).rev() {
+        let sn = l.supernode(s);
+        let ls = sn.val();
+        let (size, start) = (ls.ncols(), sn.start());
+        let pattern = sn.pattern();
+        let below = &mut tmp[..pattern.len()];
+        for (g, &i) in below.iter_mut().zip(pattern) {
+            // SAFETY: supernode patterns hold row indices below n (faer's
+            // symbolic invariant) and x has n values.
+            *g = unsafe { *x.get_unchecked(i) };
+        }
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("avx2") {
+            // SAFETY: the CPU has AVX2 (checked just above).
+            unsafe { supernode_back_sweep_avx2(ls, &mut x[start..start + size], below) };
+            continue;
+        }
+        supernode_back_sweep(ls, &mut x[start..start + size], below);
+    }
+}
+
+/// `top ← L_s⁻ᵀ (top − L_belowᵀ below)` through one supernode `ls` (as in
+/// [`supernode_sweep_one`]), columns last to first, four per pass: their
+/// dot products with the solved rows share each load of those rows, in
+/// four lanes each, summed in a fixed order (the AVX2 and plain paths give
+/// the same bits).
+#[inline(always)]
+fn supernode_back_sweep(ls: faer::MatRef<'_, f64>, top: &mut [f64], below: &[f64]) {
+    let size = top.len();
+    let col = |j: usize| ls.col(j).try_as_col_major().expect("column-major supernode").as_slice();
+    // The last size % 4 columns one by one, then groups of four.
+    let mut j = size;
+    while j % 4 != 0 {
+        j -= 1;
+        let c = col(j);
+        let d = dot_lanes(&c[j + 1..size], &top[j + 1..]) + dot_lanes(&c[size..], below);
+        top[j] = (top[j] - d) / c[j];
+    }
+    while j > 0 {
+        j -= 4;
+        let (c0, c1, c2, c3) = (col(j), col(j + 1), col(j + 2), col(j + 3));
+        let r = j + 4;
+        let a = dots4([&c0[r..size], &c1[r..size], &c2[r..size], &c3[r..size]], &top[r..]);
+        let b = dots4([&c0[size..], &c1[size..], &c2[size..], &c3[size..]], below);
+        let x3 = (top[j + 3] - (a[3] + b[3])) / c3[j + 3];
+        let x2 = (top[j + 2] - (a[2] + b[2]) - c2[j + 3] * x3) / c2[j + 2];
+        let x1 = ((top[j + 1] - (a[1] + b[1]) - c1[j + 3] * x3) - c1[j + 2] * x2) / c1[j + 1];
+        let x0 = (((top[j] - (a[0] + b[0]) - c0[j + 3] * x3) - c0[j + 2] * x2) - c0[j + 1] * x1) / c0[j];
+        top[j..j + 4].copy_from_slice(&[x0, x1, x2, x3]);
+    }
+}
+
+/// The four dot products `l_d · v`, each in four lanes over blocks of four
+/// rows, the lanes summed pairwise and the remaining rows added in order.
+#[inline(always)]
+fn dots4(l: [&[f64]; 4], v: &[f64]) -> [f64; 4] {
+    let n = v.len();
+    let (l0, l1, l2, l3) = (&l[0][..n], &l[1][..n], &l[2][..n], &l[3][..n]);
+    let mut acc = [[0.0f64; 4]; 4];
+    let blocks = n / 4;
+    for b in 0..blocks {
+        let i = 4 * b;
+        for k in 0..4 {
+            let vk = v[i + k];
+            acc[0][k] += l0[i + k] * vk;
+            acc[1][k] += l1[i + k] * vk;
+            acc[2][k] += l2[i + k] * vk;
+            acc[3][k] += l3[i + k] * vk;
+        }
+    }
+    let mut out = [0.0; 4];
+    for (d, (o, a)) in out.iter_mut().zip(&acc).enumerate() {
+        let mut t = (a[0] + a[1]) + (a[2] + a[3]);
+        for i in 4 * blocks..n {
+            t += l[d][i] * v[i];
+        }
+        *o = t;
+    }
+    out
+}
+
+/// One dot product `l · v` as [`dots4`] forms each of its four.
+#[inline(always)]
+fn dot_lanes(l: &[f64], v: &[f64]) -> f64 {
+    let n = v.len();
+    let l = &l[..n];
+    let mut acc = [0.0f64; 4];
+    let blocks = n / 4;
+    for b in 0..blocks {
+        let i = 4 * b;
+        for k in 0..4 {
+            acc[k] += l[i + k] * v[i + k];
+        }
+    }
+    let mut t = (acc[0] + acc[1]) + (acc[2] + acc[3]);
+    for i in 4 * blocks..n {
+        t += l[i] * v[i];
+    }
+    t
+}
+
+/// [`supernode_back_sweep`] compiled for AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn supernode_back_sweep_avx2(ls: faer::MatRef<'_, f64>, top: &mut [f64], below: &[f64]) {
+    supernode_back_sweep(ls, top, below)
+}
+
 /// `X ← L⁻¹ X` for a simplicial factor in CSC (diagonal first in each
 /// column), on column-major `x` with `n` rows, four columns at a time,
 /// skipping the columns of `L` where the four are zero. A Schur
@@ -1394,9 +1514,9 @@ mod tests {
         lower_csc(n, &trip).unwrap()
     }
 
-    /// A single right-hand side takes the supernode sweep: faer's
-    /// solution to round-off, and the same bits on the AVX2 path as on the
-    /// plain one.
+    /// A single right-hand side takes the supernode sweeps (forward and
+    /// transposed): faer's solution to round-off, and the same bits on the
+    /// AVX2 path as on the plain one.
     #[test]
     fn one_column_solve_matches_faer() {
         let a = lower_csc(14 * 14 * 14, &lattice_triplets(14, 14)).unwrap();
@@ -1457,6 +1577,22 @@ mod tests {
             unsafe { supernode_sweep_avx2(t.as_ref(), &mut wide_top, &mut wide_below) };
             let same = |a: &[f64], b: &[f64]| a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits());
             assert!(same(&top, &wide_top) && same(&below, &wide_below));
+        }
+        // The transposed sweep: `top ← T⁻ᵀ (top − Bᵀ below)` for the same
+        // block, against the dense product, both paths the same bits.
+        let mut back = top0.clone();
+        supernode_back_sweep(t.as_ref(), &mut back, &below0);
+        for j in 0..m {
+            let lhs: f64 = (j..m).map(|i| t[(i, j)] * back[i]).sum::<f64>()
+                + (0..below_rows).map(|r| t[(m + r, j)] * below0[r]).sum::<f64>();
+            assert!((lhs - top0[j]).abs() < 1e-13, "column {j}: {lhs} against {}", top0[j]);
+        }
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("avx2") {
+            let mut wide = top0.clone();
+            // SAFETY: AVX2 checked.
+            unsafe { supernode_back_sweep_avx2(t.as_ref(), &mut wide, &below0) };
+            assert!(back.iter().zip(&wide).all(|(x, y)| x.to_bits() == y.to_bits()));
         }
     }
 
