@@ -6,6 +6,7 @@ mod common;
 
 use common::rel_err;
 use nsdd::generate::{tower, TowerParams};
+use nsdd::result::SolveResult;
 use nsdd::scene::Scene;
 use nsdd::settings::Method;
 use nsdd::solve::solve;
@@ -99,16 +100,7 @@ fn a_floor_of_the_subdomain_solves_is_refined_away() {
         unilateral: false,
         ..Default::default()
     });
-    let direct = solve(&scene, &opts(Method::Direct, 1)).expect("direct");
-    let cg = solve(
-        &scene,
-        &SolveOptions {
-            tolerance: 1e-10,
-            ..opts(Method::Cg, 16)
-        },
-    )
-    .expect("cg");
-    assert!(cg.converged, "{:?}", cg.stop_message);
+    let (direct, cg) = direct_and_converged_cg(&scene, 16, 1e-10);
     let rf = cg.equilibrium_refinement.expect("a correction was needed");
     assert!(rf.residual_before > 1e-10 && rf.corrections >= 1, "{rf:?}");
     assert!(
@@ -142,16 +134,7 @@ fn the_settled_cable_set_is_refined_too() {
         nz: 10,
         ..Default::default()
     });
-    let direct = solve(&scene, &opts(Method::Direct, 1)).expect("direct");
-    let cg = solve(
-        &scene,
-        &SolveOptions {
-            tolerance: 1e-11,
-            ..opts(Method::Cg, 4)
-        },
-    )
-    .expect("cg");
-    assert!(cg.converged, "{:?}", cg.stop_message);
+    let (direct, cg) = direct_and_converged_cg(&scene, 4, 1e-11);
     assert!(cg.slack.iter().any(|&s| s), "cables go slack");
     assert_eq!(cg.slack, direct.slack);
     assert!(cg.equilibrium_refinement.is_some(), "a correction was needed");
@@ -180,16 +163,7 @@ fn large_plate_subdomains_are_refined_below_the_residual_they_show() {
         t0: 0.0,
         ..Default::default()
     });
-    let direct = solve(&scene, &opts(Method::Direct, 1)).expect("direct");
-    let cg = solve(
-        &scene,
-        &SolveOptions {
-            tolerance: 1e-10,
-            ..opts(Method::Cg, 4)
-        },
-    )
-    .expect("cg");
-    assert!(cg.converged, "{:?}", cg.stop_message);
+    let (direct, cg) = direct_and_converged_cg(&scene, 4, 1e-10);
     let rf = cg.equilibrium_refinement.expect("a correction was needed");
     assert!(
         rf.residual_before < 0.5e-10,
@@ -201,6 +175,22 @@ fn large_plate_subdomains_are_refined_below_the_residual_they_show() {
         eu <= 1e-10 && et <= 1e-10,
         "claimed 1e-10: displacements {eu:.2e}, tensions {et:.2e} off"
     );
+}
+
+/// The direct solve of `scene` and its cg solve on `subdomains` at
+/// `tolerance`, which must end converged.
+fn direct_and_converged_cg(scene: &Scene, subdomains: usize, tolerance: f64) -> (SolveResult, SolveResult) {
+    let direct = solve(scene, &opts(Method::Direct, 1)).expect("direct");
+    let cg = solve(
+        scene,
+        &SolveOptions {
+            tolerance,
+            ..opts(Method::Cg, subdomains)
+        },
+    )
+    .expect("cg");
+    assert!(cg.converged, "{:?}", cg.stop_message);
+    (direct, cg)
 }
 
 fn flat(v: &[[f64; 3]]) -> Vec<f64> {
