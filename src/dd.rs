@@ -2076,7 +2076,7 @@ const CORRECTION_PROGRESS: f64 = 0.1;
 /// 2.4 × and 17 × on the 1e6-dof plate cut in 16 and 4 (subdomains of 63k
 /// and 250k dofs, whose solves' forward error the residual hardly shows):
 /// 1.1e-8 and 3.1e-8 for a tolerance of 1e-8, where 0.5 left them alone.
-/// One correction takes them to 2e-11; below 0.05 the plates and towers
+/// One correction takes them to 3e-11 and 6e-11; below 0.05 the plates and towers
 /// cut in 4–64 would pay a correction's 3 iterations for nothing.
 const REFINE_ABOVE: f64 = 0.05;
 

@@ -962,11 +962,7 @@ fn supernodal_forward_skipping_zeros(
             // one, and its product with the rows below cost a call and a
             // pass over a temporary per supernode.
             let below = &mut tmp[..np];
-            for (g, &i) in below.iter_mut().zip(pattern) {
-                // SAFETY: supernode patterns hold row indices below n
-                // (faer's symbolic invariant) and x has n values (w = 1).
-                *g = unsafe { *x.get_unchecked(i) };
-            }
+            gather_rows(x, pattern, below);
             supernode_sweep_one(ls, &mut x[start..start + size], below);
             for (&g, &i) in below.iter().zip(pattern) {
                 // SAFETY: as above.
@@ -1098,18 +1094,25 @@ fn supernodal_backward_one(sym: &SymbolicSupernodalCholesky<usize>, values: &[f6
         let (size, start) = (ls.ncols(), sn.start());
         let pattern = sn.pattern();
         let below = &mut tmp[..pattern.len()];
-        for (g, &i) in below.iter_mut().zip(pattern) {
-            // SAFETY: supernode patterns hold row indices below n (faer's
-            // symbolic invariant) and x has n values.
-            *g = unsafe { *x.get_unchecked(i) };
-        }
+        gather_rows(x, pattern, below);
+        let top = &mut x[start..start + size];
         #[cfg(target_arch = "x86_64")]
         if std::arch::is_x86_feature_detected!("avx2") {
             // SAFETY: the CPU has AVX2 (checked just above).
-            unsafe { supernode_back_sweep_avx2(ls, &mut x[start..start + size], below) };
+            unsafe { supernode_back_sweep_avx2(ls, top, below) };
             continue;
         }
-        supernode_back_sweep(ls, &mut x[start..start + size], below);
+        supernode_back_sweep(ls, top, below);
+    }
+}
+
+/// `below[k] = x[pattern[k]]`: a supernode's pattern rows of `x`.
+#[inline(always)]
+fn gather_rows(x: &[f64], pattern: &[usize], below: &mut [f64]) {
+    for (g, &i) in below.iter_mut().zip(pattern) {
+        // SAFETY: supernode patterns hold row indices below n (faer's
+        // symbolic invariant) and x has n values.
+        *g = unsafe { *x.get_unchecked(i) };
     }
 }
 
