@@ -1095,15 +1095,19 @@ fn supernodal_backward_one(sym: &SymbolicSupernodalCholesky<usize>, values: &[f6
         let pattern = sn.pattern();
         let below = &mut tmp[..pattern.len()];
         gather_rows(x, pattern, below);
-        let top = &mut x[start..start + size];
-        #[cfg(target_arch = "x86_64")]
-        if std::arch::is_x86_feature_detected!("avx2") {
-            // SAFETY: the CPU has AVX2 (checked just above).
-            unsafe { supernode_back_sweep_avx2(ls, top, below) };
-            continue;
-        }
-        supernode_back_sweep(ls, top, below);
+        supernode_back_sweep_one(ls, &mut x[start..start + size], below);
     }
+}
+
+/// [`supernode_back_sweep`] on AVX2 where the CPU has it (the same bits).
+fn supernode_back_sweep_one(ls: faer::MatRef<'_, f64>, top: &mut [f64], below: &[f64]) {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU has AVX2 (checked just above).
+        unsafe { supernode_back_sweep_avx2(ls, top, below) };
+        return;
+    }
+    supernode_back_sweep(ls, top, below);
 }
 
 /// `below[k] = x[pattern[k]]`: a supernode's pattern rows of `x`.
@@ -1120,7 +1124,8 @@ fn gather_rows(x: &[f64], pattern: &[usize], below: &mut [f64]) {
 /// [`supernode_sweep_one`]), columns last to first, four per pass: their
 /// dot products with the solved rows share each load of those rows, in
 /// four lanes each, summed in a fixed order (the AVX2 and plain paths give
-/// the same bits).
+/// the same bits); the last `size % 4` columns take [`crate::kernels::dot`]
+/// one by one.
 #[inline(always)]
 fn supernode_back_sweep(ls: faer::MatRef<'_, f64>, top: &mut [f64], below: &[f64]) {
     let size = top.len();
@@ -1130,7 +1135,7 @@ fn supernode_back_sweep(ls: faer::MatRef<'_, f64>, top: &mut [f64], below: &[f64
     while j % 4 != 0 {
         j -= 1;
         let c = col(j);
-        let d = dot_lanes(&c[j + 1..size], &top[j + 1..]) + dot_lanes(&c[size..], below);
+        let d = crate::kernels::dot(&c[j + 1..size], &top[j + 1..]) + crate::kernels::dot(&c[size..], below);
         top[j] = (top[j] - d) / c[j];
     }
     while j > 0 {
@@ -1174,26 +1179,6 @@ fn dots4(l: [&[f64]; 4], v: &[f64]) -> [f64; 4] {
         *o = t;
     }
     out
-}
-
-/// One dot product `l · v` as [`dots4`] forms each of its four.
-#[inline(always)]
-fn dot_lanes(l: &[f64], v: &[f64]) -> f64 {
-    let n = v.len();
-    let l = &l[..n];
-    let mut acc = [0.0f64; 4];
-    let blocks = n / 4;
-    for b in 0..blocks {
-        let i = 4 * b;
-        for k in 0..4 {
-            acc[k] += l[i + k] * v[i + k];
-        }
-    }
-    let mut t = (acc[0] + acc[1]) + (acc[2] + acc[3]);
-    for i in 4 * blocks..n {
-        t += l[i] * v[i];
-    }
-    t
 }
 
 /// [`supernode_back_sweep`] compiled for AVX2.
