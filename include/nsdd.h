@@ -606,10 +606,10 @@ enum NsddStatus nsdd_options_set_adaptive_edges_auto(struct NsddOptions *options
 /**
  * Sets the degree of the polynomial fields in each interface's macro
  * basis (`multilevel` and `cg`), overriding the scene's `[solver]
- * macro_degree`: 1 (rigid motions and in-plane extensions), 2, 3 or 4
- * (the quadratic, cubic, then quartic fields per component added: on
- * plates `cg` takes about half the iterations); 0 lets the solver choose
- * (the default: 4 for `cg` on the interfaces of 80 nodes or more of a
+ * macro_degree`: 1 (rigid motions and in-plane extensions) to 6 (2 to
+ * 6 add the quadratic, cubic, ... fields per component: on plates `cg`
+ * takes about half the iterations); 0 lets the solver choose (the
+ * default: 5 for `cg` on the interfaces of 80 nodes or more of a
  * flat structure without the adaptive macro space, 3 on its interfaces
  * of 20 to 79 nodes, 2 on those of 16 to 19, 1 elsewhere). Any other
  * value is

@@ -202,8 +202,8 @@ struct SolveArgs {
     /// With the adaptive macro space, constraints on the edges too (dofs shared by three or more subdomains): 2-11x fewer cg iterations on 3D towers with stiff bars on soft cables; auto (the default): on where the elements' EA/L span 100x or more, as the adaptive space itself. `--adaptive-edges` alone means true
     #[arg(long, value_name = "true|false|auto", num_args = 0..=1, default_missing_value = "true", value_parser = parse_adaptive_edges)]
     adaptive_edges: Option<AdaptiveEdges>,
-    /// Degree of the polynomial fields in each interface's macro basis (multilevel and cg): 1 (rigid motions and in-plane extensions), 2, 3 or 4 (adds the quadratic, cubic, then quartic fields per component: 8-16 cg iterations instead of 15-33 on plates); auto (the default): for cg on a flat structure (plates, double-layer grids) without the adaptive space, 4 on the interfaces of 80 nodes or more, 3 on those of 20 to 79 and 2 on those of 16 to 19, else 1
-    #[arg(long, value_name = "1|2|3|4|auto", value_parser = parse_macro_degree)]
+    /// Degree of the polynomial fields in each interface's macro basis (multilevel and cg): 1 (rigid motions and in-plane extensions) to 6 (2 to 6 add the quadratic, cubic, ... fields per component: 8-16 cg iterations instead of 15-33 on plates); auto (the default): for cg on a flat structure (plates, double-layer grids) without the adaptive space, 5 on the interfaces of 80 nodes or more, 3 on those of 20 to 79 and 2 on those of 16 to 19, else 1
+    #[arg(long, value_name = "1-6|auto", value_parser = parse_macro_degree)]
     macro_degree: Option<MacroDegree>,
     /// Write the result JSON here (also when not converged: its `status` says why; not after an error or divergence)
     #[arg(long, value_name = "FILE")]

@@ -393,14 +393,14 @@ impl<'de> Deserialize<'de> for AdaptiveEdges {
 /// in-plane extensions (9 columns), 2 to 4 add, per displacement
 /// component, the monomials of degree 2 up to the degree in the
 /// interface's two in-plane coordinates (those its points do not span drop
-/// out). Written `1`, `2`, `3`, `4` or `"auto"` in a scene.
+/// out). Written `1` to `6` or `"auto"` in a scene.
 ///
 /// `Auto` (the default) is, for `cg` on a flat structure (its nodes'
 /// smallest principal spread at most [`FLAT_SPREAD_RATIO`] of the middle
-/// one) with the adaptive macro space off: 4 on the interfaces of at least
-/// [`QUARTIC_FACE_NODES`] nodes, 3 on those of [`POLYNOMIAL_FACE_NODES`]
-/// to 79 nodes, 2 on those of [`QUADRATIC_FACE_NODES`] to 19 nodes; 1
-/// elsewhere. Where the plates'
+/// one) with the adaptive macro space off: 5 ([`MacroDegree::AUTO_MAX`])
+/// on the interfaces of at least [`QUINTIC_FACE_NODES`] nodes, 3 on those
+/// of [`POLYNOMIAL_FACE_NODES`] to 79 nodes, 2 on those of
+/// [`QUADRATIC_FACE_NODES`] to 19 nodes; 1 elsewhere. Where the plates'
 /// interfaces get them (24² in 4, 48² and 65² in 4 and 16, 130² in 4–64
 /// subdomains) `cg` then takes 8–17 iterations where it took 15–33, for
 /// the same time or up to 1.3× less. Smaller interfaces get less: there
@@ -418,9 +418,9 @@ impl<'de> Deserialize<'de> for AdaptiveEdges {
 /// assert_eq!(MacroDegree::default(), MacroDegree::Auto);
 /// assert_eq!("auto".parse::<MacroDegree>(), Ok(MacroDegree::Auto));
 /// assert_eq!("2".parse::<MacroDegree>(), Ok(MacroDegree::Fixed(2)));
-/// assert_eq!("4".parse::<MacroDegree>(), Ok(MacroDegree::Fixed(4)));
-/// assert!("5".parse::<MacroDegree>().is_err());
-/// assert_eq!(MacroDegree::Auto.resolve(true, false, true), 4);
+/// assert_eq!("6".parse::<MacroDegree>(), Ok(MacroDegree::Fixed(6)));
+/// assert!("7".parse::<MacroDegree>().is_err());
+/// assert_eq!(MacroDegree::Auto.resolve(true, false, true), 5);
 /// assert_eq!(MacroDegree::Auto.resolve(true, false, false), 1);
 /// assert_eq!(MacroDegree::Auto.resolve(true, true, true), 1);
 /// assert_eq!(MacroDegree::Auto.resolve(false, false, true), 1);
@@ -428,8 +428,8 @@ impl<'de> Deserialize<'de> for AdaptiveEdges {
 /// // Small interfaces keep degree 1 under "auto", not when it is fixed.
 /// assert_eq!(MacroDegree::Auto.on_interface(3, || 12), 1);
 /// assert_eq!(MacroDegree::Auto.on_interface(3, || 16), 2);
-/// assert_eq!(MacroDegree::Auto.on_interface(4, || 40), 3);
-/// assert_eq!(MacroDegree::Auto.on_interface(4, || 100), 4);
+/// assert_eq!(MacroDegree::Auto.on_interface(5, || 40), 3);
+/// assert_eq!(MacroDegree::Auto.on_interface(5, || 100), 5);
 /// assert_eq!(MacroDegree::Auto.on_interface(3, || 100), 3);
 /// assert_eq!(MacroDegree::Fixed(3).on_interface(3, || 12), 3);
 /// ```
@@ -472,20 +472,32 @@ pub const POLYNOMIAL_FACE_NODES: usize = 20;
 pub const QUADRATIC_FACE_NODES: usize = 16;
 
 /// Fewest nodes on an interface for [`MacroDegree::Auto`] to give it the
-/// quartic fields (degree 4, 45 columns where degree 3 has 30). Measured
-/// with `cg` to 1e-8 on double-layer plates (best of 3 interleaved below
-/// 1e6 dofs, one run each at 1e6): on faces of about 100 nodes and more
-/// (the 200² plate cut in 16, the 410² one in 16 and 64) degree 4 takes
-/// 20, 23 and 24 iterations instead of 24, 25 and 37, in 0.85–0.88× the
-/// time; on the 130² plate cut in 4 (faces of 130 nodes) 12 instead of 15
-/// in the same time. On faces of 33–65 nodes (130² in 16 and 64, 200² in
-/// 64, 65² in 4) it also cuts the iterations by a fifth but took 0.97 to
-/// 1.13× the time, so those keep degree 3.
-pub const QUARTIC_FACE_NODES: usize = 80;
+/// fields up to degree 5 ([`MacroDegree::AUTO_MAX`], 60 columns where
+/// degree 3 has 30). Measured with `cg` to 1e-8 on double-layer plates
+/// (one or two runs each): on faces of about 100 nodes and more degree 4 took 20,
+/// 23 and 24 iterations instead of 24, 25 and 37 (the 200² plate cut in 16,
+/// the 410² one in 16 and 64) in 0.85–0.88× the time; degree 5 then takes
+/// 16, 23 and 20 instead of 20, 29 and 24 (the 410² plate cut in 16 with
+/// its equilibrium correction), and 12, 19 and 11 instead of 14, 21 and 12
+/// on the 200², 410² and 130² plates cut in 4 (faces of 130–410 nodes), in
+/// 0.93–1.04× the time of degree 4. Degree 6 saves 1–2 iterations more for
+/// up to 1.06× the time. On faces of 33–65 nodes (130² in 16 and 64, 200²
+/// in 64, 65² in 4) degree 4 cut the iterations by a fifth but took 0.97
+/// to 1.13× the time, so those keep degree 3.
+pub const QUINTIC_FACE_NODES: usize = 80;
+
+/// The former name of [`QUINTIC_FACE_NODES`] (the threshold gave degree 4
+/// until `"auto"` went up to degree 5).
+#[deprecated(note = "use QUINTIC_FACE_NODES: \"auto\" now gives degree 5 from there")]
+pub const QUARTIC_FACE_NODES: usize = QUINTIC_FACE_NODES;
 
 impl MacroDegree {
     /// Highest degree accepted.
-    pub const MAX: u8 = 4;
+    pub const MAX: u8 = 6;
+
+    /// Highest degree `Auto` gives (on interfaces of at least
+    /// [`QUINTIC_FACE_NODES`] nodes).
+    pub const AUTO_MAX: u8 = 5;
 
     pub fn is_default(&self) -> bool {
         *self == MacroDegree::default()
@@ -510,7 +522,7 @@ impl MacroDegree {
     pub fn resolve(self, flat: bool, adaptive: bool, cg: bool) -> u8 {
         match self {
             MacroDegree::Fixed(d) => d,
-            MacroDegree::Auto if cg && flat && !adaptive => Self::MAX,
+            MacroDegree::Auto if cg && flat && !adaptive => Self::AUTO_MAX,
             MacroDegree::Auto => 1,
         }
     }
@@ -518,14 +530,14 @@ impl MacroDegree {
     /// The degree of one interface whose node count `nodes` gives,
     /// `resolved` being what [`Self::resolve`] gave: a fixed degree holds on
     /// every interface; `Auto` lowers it to 3 on those smaller than
-    /// [`QUARTIC_FACE_NODES`], to 2 on those smaller than
+    /// [`QUINTIC_FACE_NODES`], to 2 on those smaller than
     /// [`POLYNOMIAL_FACE_NODES`] and to 1 on those smaller than
     /// [`QUADRATIC_FACE_NODES`]. `nodes` is only called where the count can
     /// change the answer (`Auto` above degree 1).
     pub fn on_interface(self, resolved: u8, nodes: impl FnOnce() -> usize) -> u8 {
         match self {
             MacroDegree::Auto if resolved > 1 => match nodes() {
-                n if n >= QUARTIC_FACE_NODES => resolved,
+                n if n >= QUINTIC_FACE_NODES => resolved,
                 n if n >= POLYNOMIAL_FACE_NODES => resolved.min(3),
                 n if n >= QUADRATIC_FACE_NODES => resolved.min(2),
                 _ => 1,

@@ -531,10 +531,11 @@ fn solve_here(
         if st.macro_degree > 1 {
             let why = if opts.macro_degree.is_default() {
                 format!(
-                    " (\"auto\": cg on a flat structure without the adaptive space, degree 4 on the interfaces of {} \
+                    " (\"auto\": cg on a flat structure without the adaptive space, degree {} on the interfaces of {} \
                      nodes or more, 3 on those of {} or more, 2 on those of {} or more; macro_degree = 1 keeps the \
                      rigid motions and extensions alone)",
-                    crate::settings::QUARTIC_FACE_NODES,
+                    crate::settings::MacroDegree::AUTO_MAX,
+                    crate::settings::QUINTIC_FACE_NODES,
                     crate::settings::POLYNOMIAL_FACE_NODES,
                     crate::settings::QUADRATIC_FACE_NODES
                 )

@@ -1085,8 +1085,9 @@ fn scene_level_cg_matches_rust_api_bit_for_bit() {
             }
             nsdd_result_destroy(r);
         }
+        ok(nsdd_options_set_macro_degree(o, 6));
         expect_err(
-            nsdd_options_set_macro_degree(o, 5),
+            nsdd_options_set_macro_degree(o, 7),
             NsddStatus::InvalidArgument,
             "macro_degree",
         );

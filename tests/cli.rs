@@ -1245,7 +1245,7 @@ fn macro_degree_flag_cuts_plate_iterations() {
     };
     assert!(says_degree(&three), "{}", three["notes"]);
     assert!(!says_degree(&default) && !says_degree(&one), "{}", default["notes"]);
-    let bad = nsdd(&["solve", s(&plate), "--method", "cg", "--macro-degree", "5"]);
+    let bad = nsdd(&["solve", s(&plate), "--method", "cg", "--macro-degree", "7"]);
     assert_eq!(bad.status.code(), Some(2));
     assert!(text(&bad.stderr).contains("auto"), "{}", text(&bad.stderr));
 }

@@ -583,7 +583,7 @@ fn assert_displacements_near_direct(model: &Model, u: &[f64], what: &str) {
 /// iterations of degree 1 (14 and 25 when written); on a 40² plate cut
 /// in 4 (interfaces of ~40 nodes) it picks 3 on the large interfaces and
 /// cuts the iterations; on an 88² plate cut in 4 (faces of ~88 nodes,
-/// above `QUARTIC_FACE_NODES`) it picks 4 there, with fewer iterations
+/// above `QUINTIC_FACE_NODES`) it picks 5 there, with fewer iterations
 /// than degree 3; on a uniform tower it keeps 1, with the bits of
 /// degree 1.
 #[test]
@@ -634,7 +634,7 @@ fn polynomial_macro_fields_cut_the_plate_iterations() {
     let wide = grid_scene(88, false);
     let (it3, _, m3, _) = run(&wide, 4, MacroDegree::Fixed(3));
     let (it_auto, (degree, polynomial, interfaces), m_auto, _) = run(&wide, 4, MacroDegree::Auto);
-    assert_eq!(degree, 4, "faces of 80 nodes or more take the quartic fields");
+    assert_eq!(degree, 5, "faces of 80 nodes or more take the fields up to degree 5");
     assert!(
         (4..interfaces).contains(&polynomial),
         "{polynomial} of {interfaces} interfaces polynomial: the 4 faces, not the cross points"

@@ -813,7 +813,7 @@ fn pvd_series_is_well_formed() {
 }
 
 /// `[solver] macro_degree`: `"auto"` (the default) is not written, 1 to
-/// 4 are read back, anything else is refused naming the field.
+/// 6 are read back, anything else is refused naming the field.
 #[test]
 fn macro_degree_round_trips_and_refuses_other_values() {
     use nsdd::settings::MacroDegree;
@@ -825,6 +825,7 @@ fn macro_degree_round_trips_and_refuses_other_values() {
         (MacroDegree::Fixed(1), "macro_degree = 1"),
         (MacroDegree::Fixed(2), "macro_degree = 2"),
         (MacroDegree::Fixed(4), "macro_degree = 4"),
+        (MacroDegree::Fixed(6), "macro_degree = 6"),
         (MacroDegree::Fixed(3), "macro_degree = 3"),
     ] {
         scene.solver.macro_degree = v;
@@ -838,7 +839,7 @@ fn macro_degree_round_trips_and_refuses_other_values() {
         Scene::from_toml_str(&auto).unwrap().solver.macro_degree,
         MacroDegree::Auto
     );
-    for bad in ["macro_degree = 5", "macro_degree = 0", "macro_degree = \"cubic\""] {
+    for bad in ["macro_degree = 7", "macro_degree = 0", "macro_degree = \"cubic\""] {
         let err = Scene::from_toml_str(&toml.replace("macro_degree = 3", bad))
             .unwrap_err()
             .to_string();
