@@ -390,7 +390,7 @@ impl<'de> Deserialize<'de> for AdaptiveEdges {
 
 /// Degree of the polynomial fields in each interface's macro basis
 /// (`crate::coarse::geometric_modes`): 1 is the rigid motions and the
-/// in-plane extensions (9 columns), 2 to 4 add, per displacement
+/// in-plane extensions (9 columns), 2 to 6 add, per displacement
 /// component, the monomials of degree 2 up to the degree in the
 /// interface's two in-plane coordinates (those its points do not span drop
 /// out). Written `1` to `6` or `"auto"` in a scene.
@@ -472,7 +472,7 @@ pub const POLYNOMIAL_FACE_NODES: usize = 20;
 pub const QUADRATIC_FACE_NODES: usize = 16;
 
 /// Fewest nodes on an interface for [`MacroDegree::Auto`] to give it the
-/// fields up to degree 5 ([`MacroDegree::AUTO_MAX`], 60 columns where
+/// fields up to degree 5 ([`MacroDegree::AUTO_MAX`], 63 columns on a face where
 /// degree 3 has 30). Measured with `cg` to 1e-8 on double-layer plates
 /// (one or two runs each): on faces of about 100 nodes and more degree 4 took 20,
 /// 23 and 24 iterations instead of 24, 25 and 37 (the 200² plate cut in 16,
