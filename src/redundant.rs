@@ -52,7 +52,7 @@ const FACE_NORM2: f64 = 1e-6;
 /// (495 of 17 914 directions dropped, 498 now): CG met `pᵀAp < 0` along the
 /// preconditioned residual itself at an indicator of 2e-2, with every
 /// coarse solve at a backward error of 7e-15, and broke down; now it
-/// converges in 84 iterations. Twenty-three other plates and towers cut in
+/// converges in 84 iterations. Twenty-six other plates and towers cut in
 /// 4 to 64 lost no other direction but one, with the same iterations
 /// (BENCHMARKS.md, "Near-null macro combinations up to ‖W z‖ = 1e-3").
 pub const NULL_EIGENVALUE: f64 = 1e-6;
