@@ -253,12 +253,27 @@ impl SparseCholesky {
             }
         };
         let symbolic_s = t.elapsed().as_secs_f64();
-        let n = lower.nrows();
+        let mut this = Self::unfactored(lower, order, symbolic, ordering, max_rhs, par, symbolic_s)?;
+        this.refactor(lower, pivot_ratio)?;
+        Ok(this)
+    }
+
+    /// Storage for a factor of `lower` with the analysis `symbolic`, not
+    /// yet factored.
+    fn unfactored(
+        lower: &SparseColMat<usize, f64>,
+        order: Option<&EliminationOrder>,
+        symbolic: Arc<SymbolicCholesky<usize>>,
+        ordering: OrderingKind,
+        max_rhs: usize,
+        par: Par,
+        symbolic_s: f64,
+    ) -> Result<Self, FactorError> {
         let max_rhs = max_rhs.max(1);
         let req = symbolic.solve_in_place_scratch::<f64>(max_rhs, Par::Seq);
         let scratch = MemBuffer::try_new(req).map_err(|_| FactorError::Internal("out of memory".into()))?;
-        let mut this = SparseCholesky {
-            n,
+        Ok(SparseCholesky {
+            n: lower.nrows(),
             l_values: vec![0.0f64; symbolic.len_val()],
             pattern: match order.and_then(|o| o.analysis.as_ref()) {
                 Some(a) if Arc::ptr_eq(&a.symbolic, &symbolic) => a.pattern.clone(),
@@ -276,9 +291,77 @@ impl SparseCholesky {
                 symbolic_s,
                 numeric_s: 0.0,
             },
-        };
-        this.refactor(lower, pivot_ratio)?;
-        Ok(this)
+        })
+    }
+
+    /// The pivots of the singular or indefinite matrix `lower` in `order`
+    /// (as [`scan_pivots`]: negligible below `ratio` times the largest
+    /// diagonal entry) and, when none is negative, the factor of `lower`
+    /// with the negligible ones decoupled, from the same pass.
+    ///
+    /// The `LDLᵀ` replaces a negligible pivot by [`DECOUPLING_PIVOT`] times
+    /// the largest diagonal entry: its column below becomes `1e-120` of its
+    /// size and so do its updates of the rows after it, so the factor is
+    /// that of `lower` with the rows and columns of those dofs decoupled,
+    /// to round-off (the column below is then set to zero). Scaled to
+    /// `LLᵀ`, it is what a second factorization of the decoupled matrix
+    /// gave before (a singular subdomain's set-up took both). With a
+    /// right-hand side zero at the decoupled dofs, the solution there is
+    /// `1e-60` of the rest or less. faer's `LLᵀ` cannot do this itself: its
+    /// dynamic regularization is wrong in the supernodal kernels (0.24).
+    pub(crate) fn factor_decoupling_small_pivots(
+        lower: &SparseColMat<usize, f64>,
+        order: &EliminationOrder,
+        max_rhs: usize,
+        ratio: f64,
+    ) -> Result<(PivotScan, Option<SparseCholesky>), FactorError> {
+        use faer::linalg::cholesky::ldlt::factor::LdltRegularization;
+        let t = std::time::Instant::now();
+        let adiag = lower_diagonal(lower);
+        let scale = adiag.iter().fold(0.0f64, |m, v| m.max(v.abs())).max(f64::MIN_POSITIVE);
+        let delta = scale * DECOUPLING_PIVOT;
+        let symbolic = symbolic_cholesky(lower, Some(order))?;
+        let symbolic_s = t.elapsed().as_secs_f64();
+        let mut this = Self::unfactored(lower, Some(order), symbolic, order.kind, max_rhs, Par::Seq, symbolic_s)?;
+        let t = std::time::Instant::now();
+        let req = this
+            .symbolic
+            .factorize_numeric_ldlt_scratch::<f64>(Par::Seq, Spec::default());
+        let mut buf = MemBuffer::try_new(req).map_err(|_| FactorError::Internal("out of memory".into()))?;
+        this.symbolic
+            .factorize_numeric_ldlt(
+                &mut this.l_values,
+                lower.as_ref(),
+                Side::Lower,
+                LdltRegularization {
+                    dynamic_regularization_signs: None,
+                    dynamic_regularization_delta: delta,
+                    dynamic_regularization_epsilon: ratio * scale,
+                },
+                Par::Seq,
+                MemStack::new(&mut buf),
+                Spec::default(),
+            )
+            .map_err(|e| FactorError::Internal(format!("LDLT: {e:?}")))?;
+        let fwd = forward_perm(&this.symbolic);
+        let d = l_diagonal(&this.symbolic, &this.l_values);
+        let mut scan = PivotScan::default();
+        for (p, &dp) in d.iter().enumerate() {
+            let orig = fwd[p];
+            if dp.abs() == delta {
+                scan.negligible.push(orig);
+            } else if dp < 0.0 {
+                scan.negative
+                    .push((orig, dp / adiag[orig].abs().max(f64::MIN_POSITIVE)));
+            }
+        }
+        scan.negligible.sort_unstable();
+        if !scan.negative.is_empty() {
+            return Ok((scan, None));
+        }
+        ldlt_to_llt(&this.symbolic, &mut this.l_values, delta);
+        this.timings.numeric_s = t.elapsed().as_secs_f64();
+        Ok((scan, Some(this)))
     }
 
     /// Numeric factorization of a new matrix with *the same pattern* as the
@@ -621,7 +704,8 @@ impl SparseCholesky {
 
 /// A fill-reducing elimination order for one sparsity pattern, computed
 /// once and shared by every factorization of matrices with that pattern (a
-/// singular subdomain is factored up to four times).
+/// singular subdomain is factored up to four times: its pivot scan, and
+/// again where soft suspects are released).
 ///
 /// [`EliminationOrder::amd_in_reference`] makes the order a function of a
 /// *reference* numbering of the dofs rather than of the matrix's own: the
@@ -1362,6 +1446,58 @@ pub fn scan_pivots(
     Ok(scan)
 }
 
+/// Pivot given to a negligible pivot by
+/// [`SparseCholesky::factor_decoupling_small_pivots`], as a multiple of the
+/// largest diagonal entry: large enough that the row's couplings vanish
+/// (`1e-60`), small enough that no product of the factor overflows.
+pub const DECOUPLING_PIVOT: f64 = 1e120;
+
+/// `L D Lᵀ` (unit `L`, `D > 0` but for `±decoupled`) stored by faer,
+/// turned in place into the `L Lᵀ` factor (`L D^½`). The entries below a
+/// pivot of size `decoupled`
+/// are set to zero: they are `1e-60` of their size, and exactly what the
+/// factor of the decoupled matrix has there.
+fn ldlt_to_llt(symbolic: &SymbolicCholesky<usize>, values: &mut [f64], decoupled: f64) {
+    match symbolic.raw() {
+        SymbolicCholeskyRaw::Simplicial(s) => {
+            let cp = s.col_ptr();
+            let ri = s.row_idx();
+            for j in 0..symbolic.nrows() {
+                let range = cp[j]..cp[j + 1];
+                let d = ri[range.clone()]
+                    .iter()
+                    .position(|&i| i == j)
+                    .map_or(1.0, |p| values[cp[j] + p].abs());
+                let (root, below) = if d == decoupled {
+                    (d.sqrt(), 0.0)
+                } else {
+                    (d.sqrt(), d.sqrt())
+                };
+                for p in range {
+                    values[p] = if ri[p] == j { root } else { values[p] * below };
+                }
+            }
+        }
+        SymbolicCholeskyRaw::Supernodal(s) => {
+            let begin = s.supernode_begin();
+            let end = s.supernode_end();
+            let cpv = s.col_ptr_for_val();
+            for sn in 0..s.n_supernodes() {
+                let ncols = end[sn] - begin[sn];
+                let nrows = (cpv[sn + 1] - cpv[sn]) / ncols.max(1);
+                let block = &mut values[cpv[sn]..cpv[sn + 1]];
+                for j in 0..ncols {
+                    let col = &mut block[j * nrows..(j + 1) * nrows];
+                    let d = col[j].abs();
+                    let below = if d == decoupled { 0.0 } else { d.sqrt() };
+                    col[j] = d.sqrt();
+                    col[j + 1..].iter_mut().for_each(|v| *v *= below);
+                }
+            }
+        }
+    }
+}
+
 /// Diagonal of the matrix whose lower triangle (CSC) is `lower`
 /// (duplicate entries summed).
 pub fn lower_diagonal(lower: &SparseColMat<usize, f64>) -> Vec<f64> {
@@ -1500,6 +1636,96 @@ mod tests {
             trip.extend((1..n).map(|i| (i, i - 1, -1.0)));
         }
         lower_csc(n, &trip).unwrap()
+    }
+
+    /// Two disconnected copies of a lattice's graph Laplacian: singular,
+    /// with a kernel of dimension two (a constant on each copy).
+    fn floating_pair(m: usize, depth: usize) -> SparseColMat<usize, f64> {
+        let half = m * m * depth;
+        let mut trip = Vec::new();
+        for copy in 0..2 {
+            let mut degree = vec![0.0; half];
+            for (i, j, v) in lattice_triplets(m, depth) {
+                if i != j {
+                    trip.push((i + copy * half, j + copy * half, v));
+                    degree[i] -= v;
+                    degree[j] -= v;
+                }
+            }
+            trip.extend(
+                degree
+                    .iter()
+                    .enumerate()
+                    .map(|(i, &d)| (i + copy * half, i + copy * half, d)),
+            );
+        }
+        lower_csc(2 * half, &trip).unwrap()
+    }
+
+    fn norm(v: &[f64]) -> f64 {
+        v.iter().map(|x| x * x).sum::<f64>().sqrt()
+    }
+
+    /// The pivot scan's own factor is the factor of the matrix with its
+    /// negligible pivots decoupled (what a second factorization gave),
+    /// in both layouts, and a generalised inverse.
+    #[test]
+    fn decoupling_scan_is_the_factor_of_the_decoupled_matrix() {
+        for (m, depth, supernodal) in [(3, 2, false), (12, 12, true)] {
+            let a = floating_pair(m, depth);
+            let n = a.nrows();
+            let order = EliminationOrder::for_set_up(&a, None, OrderingChoice::Auto).unwrap();
+            let (scan, ours) = SparseCholesky::factor_decoupling_small_pivots(&a, &order, 1, 1e-6).unwrap();
+            assert_eq!(scan.negligible.len(), 2, "one fixing dof per copy");
+            assert!(scan.negative.is_empty());
+            let mut ours = ours.expect("no negative pivot");
+            assert_eq!(ours.is_supernodal(), supernodal);
+            let fixing = &scan.negligible;
+            let scale = lower_diagonal(&a).iter().fold(0.0f64, |m, &v| m.max(v));
+            let mut trip = Vec::new();
+            for j in 0..n {
+                for (i, &v) in a.as_ref().row_idx_of_col(j).zip(a.as_ref().val_of_col(j)) {
+                    let touches = fixing.contains(&i) || fixing.contains(&j);
+                    trip.push((
+                        i,
+                        j,
+                        if !touches {
+                            v
+                        } else if i == j {
+                            scale
+                        } else {
+                            0.0
+                        },
+                    ));
+                }
+            }
+            let decoupled = lower_csc(n, &trip).unwrap();
+            let mut before = SparseCholesky::factor_ordered(&decoupled, Some(&order), 1, PIVOT_RATIO).unwrap();
+            // Balanced on each copy (orthogonal to the kernel); solved with
+            // its entries at F zeroed, as the subdomain does.
+            let mut b: Vec<f64> = (0..n).map(|i| ((i * 7919) % 13) as f64 - 6.0).collect();
+            for copy in b.chunks_mut(n / 2) {
+                let mean = copy.iter().sum::<f64>() / copy.len() as f64;
+                copy.iter_mut().for_each(|v| *v -= mean);
+            }
+            let mut x = b.clone();
+            for f in fixing {
+                x[*f] = 0.0;
+            }
+            let mut y = x.clone();
+            ours.solve_in_place(&mut x);
+            before.solve_in_place(&mut y);
+            let diff: Vec<f64> = x.iter().zip(&y).map(|(p, q)| p - q).collect();
+            assert!(norm(&diff) <= 1e-12 * norm(&y), "{:e}", norm(&diff) / norm(&y));
+            for f in fixing {
+                assert!(x[*f].abs() <= 1e-50 * norm(&y), "x_F = {:e}", x[*f]);
+            }
+            // x solves A x = b (b is orthogonal to the kernel).
+            let mut ax = vec![0.0; n];
+            sym_matvec(&a, &x, &mut ax);
+            let res: Vec<f64> = ax.iter().zip(&b).map(|(p, q)| p - q).collect();
+            assert!(norm(&res) <= 1e-10 * norm(&b));
+        }
     }
 
     /// A single right-hand side takes the supernode sweeps (forward and

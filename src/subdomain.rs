@@ -3,9 +3,12 @@
 //! subdomain floats or has local mechanisms at the cut.
 //!
 //! Singular `K_E`: one regularised `LDLᵀ` finds the fixing dofs `F` (the
-//! pivots that vanish); the matrix is then factored with the rows and
-//! columns of `F` replaced by a unit-scale diagonal, which is block diagonal
-//! `diag(K_rr, δI)`. With `r_F` zeroed, its solve is the generalised inverse
+//! pivots that vanish) and is the factor of the matrix with the rows and
+//! columns of `F` decoupled, block diagonal `diag(K_rr, δI)`: each
+//! vanishing pivot is replaced by one so large that its couplings vanish
+//! ([`crate::factor::DECOUPLING_PIVOT`]), so no second factorization is
+//! needed (one is, after barely negative pivots, with `F` decoupled
+//! explicitly). With `r_F` zeroed, its solve is the generalised inverse
 //! `K⁺ r = [K_rr⁻¹ r_r; 0]`, exact for `r ⊥ R_E`, and the kernel is
 //! `R = [−K_rr⁻¹ K_rf; I]`, orthonormalised. Both are checked a posteriori
 //! (`‖K R‖`), and a clearly negative pivot is an indefinite subdomain: it
@@ -15,8 +18,8 @@
 use crate::decomposition::SubdomainDofs;
 use crate::error::{Error, Result};
 use crate::factor::{
-    lower_csc, lower_diagonal, scan_pivots, sym_matmat, sym_matvec, EliminationOrder, FactorError, OrderingChoice,
-    OrderingKind, SparseCholesky, ND_MIN_ROWS,
+    lower_csc, lower_diagonal, sym_matmat, sym_matvec, EliminationOrder, FactorError, OrderingChoice, OrderingKind,
+    SparseCholesky, ND_MIN_ROWS,
 };
 use crate::kernels;
 use crate::model::Model;
@@ -391,8 +394,9 @@ impl SubdomainOperator {
                 name(dof)
             ),
         };
-        let scan = scan_pivots(&stiffness, Some(order), SUSPECT_PIVOT_RATIO)
-            .map_err(|e| Error::Numerical(format!("subdomain {id}: {e:?}")))?;
+        let (scan, decoupled) =
+            SparseCholesky::factor_decoupling_small_pivots(&stiffness, order, max_rhs, SUSPECT_PIVOT_RATIO)
+                .map_err(|e| Error::Numerical(format!("subdomain {id}: {e:?}")))?;
         if let Some(&(dof, ratio)) = scan.negative.iter().find(|(_, r)| *r < -ROUNDOFF_NEGATIVE_PIVOT) {
             return Err(indefinite(dof, format!("indefinite (pivot ratio {ratio:.2e})")));
         }
@@ -410,16 +414,25 @@ impl SubdomainOperator {
             return Err(kernel_too_large(id, fixing.len()));
         }
         let scale = diag_max(&stiffness);
-        let chol = factor_with_fixing(
-            &stiffness,
-            order,
-            &mut fixing,
-            scale,
-            max_rhs,
-            id,
-            &indefinite,
-            SUBDOMAIN_PIVOT_RATIO,
-        )?;
+        // The scan's own factor, with the negligible pivots decoupled,
+        // unless barely negative ones are to be decoupled too.
+        let chol = match decoupled {
+            Some(mut c) if scan.negative.is_empty() => {
+                c.set_max_rhs(max_rhs.max(fixing.len()))
+                    .map_err(|e| Error::Numerical(format!("subdomain {id}: {e:?}")))?;
+                c
+            }
+            _ => factor_with_fixing(
+                &stiffness,
+                order,
+                &mut fixing,
+                scale,
+                max_rhs,
+                id,
+                &indefinite,
+                SUBDOMAIN_PIVOT_RATIO,
+            )?,
+        };
         let mut op = SubdomainOperator {
             id,
             stiffness,
@@ -627,8 +640,8 @@ impl SubdomainOperator {
     /// exact rigid motions replaced its rigid part. Its traces deviate from
     /// the geometric macro modes by that basis's round-off, which points
     /// along the subdomain's softest modes, and the macro basis keeps those
-    /// deviations as columns ([`crate::coarse::MACRO_RANK_RTOL`]); cg uses
-    /// them (BENCHMARKS.md, session 23).
+    /// deviations as columns ([`crate::coarse::SOFT_TRACE_RTOL`]); cg uses
+    /// them (BENCHMARKS.md, sessions 23 and 45).
     pub fn macro_trace_kernel(&self) -> &Mat<f64> {
         self.factored_kernel.as_ref().unwrap_or(&self.kernel)
     }
