@@ -147,13 +147,15 @@ pub fn is_flat(points: &[[f64; 3]]) -> bool {
 impl MacroBasis {
     /// Builds the basis of one interface from its geometric modes up to
     /// `degree` ([`geometric_modes`]) and the kernel traces of its two
-    /// subdomains (`trace_lo`, `trace_hi`: `entries × r` each).
+    /// subdomains (`trace_lo`, `trace_hi`: `entries × r` each), ranked at
+    /// `rtol` ([`MACRO_RANK_RTOL`] or [`SOFT_TRACE_RTOL`]).
     pub fn interface_block(
         points: &[[f64; 3]],
         comp: &[usize],
         trace_lo: &Mat<f64>,
         trace_hi: &Mat<f64>,
         degree: u8,
+        rtol: f64,
     ) -> Mat<f64> {
         let g = geometric_modes(points, comp, degree);
         let ng = g.ncols();
@@ -168,7 +170,7 @@ impl MacroBasis {
                 trace_hi[(i, j - ng - trace_lo.ncols())]
             }
         });
-        orthonormal_columns(&all, MACRO_RANK_RTOL)
+        orthonormal_columns(&all, rtol)
     }
 
     /// The basis of one interface from the kernel traces of its two
@@ -299,6 +301,18 @@ impl std::fmt::Debug for CoarseProblem {
 /// noise, a kept column is an orthonormal direction more, which costs a
 /// coarse unknown and never an answer.
 pub const MACRO_RANK_RTOL: f64 = 1e-12;
+
+/// [`MACRO_RANK_RTOL`] for a macro space without the adaptive columns: the
+/// kernel traces' deviations from the geometric modes are kept down to
+/// round-off. They point along the subdomains' softest modes, the only
+/// such enrichment such a space has, and at 1e-12 the threshold cut
+/// through them (relative singular values spread from 1e-9 to 1e-16 on the
+/// 410² plate cut in 64): one column more or less moved its cg count
+/// between 20 and 28 with round-off alone; at 1e-14 it is 19 whatever the
+/// factorization's round-off. With the adaptive space (stiffness
+/// contrast) they duplicate its columns: there the 12³ contrast tower cut
+/// in 64 stalled at 1e-14 (BENCHMARKS.md, session 45).
+pub const SOFT_TRACE_RTOL: f64 = 1e-14;
 
 const KRYLOV_DIM: usize = 30;
 const MAX_CYCLES: usize = 3;
@@ -1558,6 +1572,36 @@ fn sparse_clearly_positive_definite(na: usize, rows: &[Vec<(usize, f64)>]) -> bo
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A kernel trace that repeats a geometric mode up to a deviation of
+    /// 1e-13 (what a computed kernel's round-off leaves) is a column of
+    /// its own at [`SOFT_TRACE_RTOL`] and dropped at [`MACRO_RANK_RTOL`].
+    #[test]
+    fn soft_trace_deviations_are_kept_below_the_macro_cut() {
+        // A straight line of 12 points along x, x components only: the
+        // degree-1 fields there are a translation and an extension.
+        let points: Vec<[f64; 3]> = (0..12).map(|i| [i as f64, 0.0, 0.0]).collect();
+        let comp = vec![0; 12];
+        let base = MacroBasis::interface_block(
+            &points,
+            &comp,
+            &Mat::zeros(12, 0),
+            &Mat::zeros(12, 0),
+            1,
+            MACRO_RANK_RTOL,
+        );
+        // A translation, off by a rough (non-polynomial) 1e-13 field.
+        let trace = Mat::from_fn(12, 1, |i, _| 1.0 + 1e-13 * (((i * 7) % 5) as f64 - 2.0));
+        let none = Mat::zeros(12, 0);
+        let cut = MacroBasis::interface_block(&points, &comp, &trace, &none, 1, MACRO_RANK_RTOL);
+        let kept = MacroBasis::interface_block(&points, &comp, &trace, &none, 1, SOFT_TRACE_RTOL);
+        assert_eq!(cut.ncols(), base.ncols());
+        assert_eq!(kept.ncols(), base.ncols() + 1);
+        // An exact repeat stays out at either cut.
+        let exact = Mat::from_fn(12, 1, |_, _| 1.0);
+        let soft = MacroBasis::interface_block(&points, &comp, &exact, &none, 1, SOFT_TRACE_RTOL);
+        assert_eq!(soft.ncols(), base.ncols());
+    }
 
     /// `S = Bᵀ B` from the forward-substituted kernel columns against `S`
     /// from full solves, and the kept columns' inner-solve route

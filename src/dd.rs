@@ -1048,7 +1048,15 @@ impl DdSolver {
                         if degree > 1 {
                             n_polynomial.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
                         }
-                        let p = MacroBasis::interface_block(&points, &comp, &tlo, &thi, degree);
+                        // The kernel traces' deviations are kept down to
+                        // round-off, but not beside an adaptive space, whose
+                        // columns they would nearly repeat (SOFT_TRACE_RTOL).
+                        let rtol = if adaptive_on {
+                            crate::coarse::MACRO_RANK_RTOL
+                        } else {
+                            crate::coarse::SOFT_TRACE_RTOL
+                        };
+                        let p = MacroBasis::interface_block(&points, &comp, &tlo, &thi, degree, rtol);
                         let p = match face_sides.get(i) {
                             Some([Some(lo), Some(hi)]) => {
                                 let (p, added) = adaptive::enrich(p, &face_entries[i], lo, hi, adaptive_threshold);

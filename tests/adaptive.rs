@@ -129,8 +129,9 @@ fn adaptive_macro_space_converges_on_the_readme_tower() {
 }
 
 /// A 3D contrast tower with cross points (6³ cells, bars 1e4 × the cables,
-/// 8 subdomains): 187 iterations without the adaptive space, 62 with
-/// constraints on the faces, 18 with them on the edges too
+/// 8 subdomains): 99 iterations without the adaptive space (187 when the
+/// kernel traces' deviations were cut at 1e-12, `SOFT_TRACE_RTOL`), 64
+/// with constraints on the faces, 18 with them on the edges too
 /// (`adaptive_edges`); the same answer.
 #[test]
 fn adaptive_macro_space_on_a_3d_contrast_tower() {
@@ -146,9 +147,10 @@ fn adaptive_macro_space_on_a_3d_contrast_tower() {
         edges.status
     );
     assert!(
-        2 * faces.iterations < base.iterations,
-        "adaptive {} vs {} without",
+        faces.iterations < base.iterations && 3 * edges.iterations < base.iterations,
+        "adaptive {} / {} vs {} without",
         faces.iterations,
+        edges.iterations,
         base.iterations
     );
     assert!(
@@ -322,17 +324,29 @@ fn adaptive_macro_space_on_a_uniform_tower() {
 }
 
 /// The face blocks the adaptive step computes are the ones the deluxe
-/// weights take over: with a threshold no eigenvalue reaches, the solve is
-/// bit for bit the one without the adaptive step.
+/// weights take over: with a threshold no eigenvalue reaches, no column is
+/// added and the answer is the one without the adaptive step. (Not bit for
+/// bit: without an adaptive space the macro basis keeps the kernel traces'
+/// deviations down to round-off, `SOFT_TRACE_RTOL`.)
 #[test]
 fn adaptive_step_hands_its_blocks_to_the_deluxe_weights() {
     let scene = contrast_cube(4);
+    let d = direct(&scene);
     let base = cg(&scene, 8, 0.0);
     let same = cg(&scene, 8, 1e300);
     assert_eq!(note_columns(&same), 0);
-    assert_eq!(base.iterations, same.iterations);
-    assert_eq!(base.displacements, same.displacements);
-    assert_eq!(base.tensions, same.tensions);
+    assert!(base.converged && same.converged);
+    for x in [&base, &same] {
+        assert_near_direct(x, &d);
+    }
+    // The deviations the space without the adaptive step keeps are worth
+    // iterations here: 8 against 19 with the adaptive step's 1e-12 cut.
+    assert!(
+        base.iterations < same.iterations,
+        "{} vs {}",
+        base.iterations,
+        same.iterations
+    );
     // Taken over, not recomputed: every face block of the deluxe weights.
     let model = nsdd::model::Model::from_scene(&scene).unwrap();
     let dec = nsdd::solve::decompose(&model, &scene, 8).unwrap();
