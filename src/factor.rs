@@ -315,47 +315,12 @@ impl SparseCholesky {
         max_rhs: usize,
         ratio: f64,
     ) -> Result<(PivotScan, Option<SparseCholesky>), FactorError> {
-        use faer::linalg::cholesky::ldlt::factor::LdltRegularization;
         let t = std::time::Instant::now();
-        let adiag = lower_diagonal(lower);
-        let scale = adiag.iter().fold(0.0f64, |m, v| m.max(v.abs())).max(f64::MIN_POSITIVE);
-        let delta = scale * DECOUPLING_PIVOT;
         let symbolic = symbolic_cholesky(lower, Some(order))?;
         let symbolic_s = t.elapsed().as_secs_f64();
         let mut this = Self::unfactored(lower, Some(order), symbolic, order.kind, max_rhs, Par::Seq, symbolic_s)?;
         let t = std::time::Instant::now();
-        let req = this
-            .symbolic
-            .factorize_numeric_ldlt_scratch::<f64>(Par::Seq, Spec::default());
-        let mut buf = MemBuffer::try_new(req).map_err(|_| FactorError::Internal("out of memory".into()))?;
-        this.symbolic
-            .factorize_numeric_ldlt(
-                &mut this.l_values,
-                lower.as_ref(),
-                Side::Lower,
-                LdltRegularization {
-                    dynamic_regularization_signs: None,
-                    dynamic_regularization_delta: delta,
-                    dynamic_regularization_epsilon: ratio * scale,
-                },
-                Par::Seq,
-                MemStack::new(&mut buf),
-                Spec::default(),
-            )
-            .map_err(|e| FactorError::Internal(format!("LDLT: {e:?}")))?;
-        let fwd = forward_perm(&this.symbolic);
-        let d = l_diagonal(&this.symbolic, &this.l_values);
-        let mut scan = PivotScan::default();
-        for (p, &dp) in d.iter().enumerate() {
-            let orig = fwd[p];
-            if dp.abs() == delta {
-                scan.negligible.push(orig);
-            } else if dp < 0.0 {
-                scan.negative
-                    .push((orig, dp / adiag[orig].abs().max(f64::MIN_POSITIVE)));
-            }
-        }
-        scan.negligible.sort_unstable();
+        let (scan, delta) = regularised_ldlt(&this.symbolic, &mut this.l_values, lower, ratio, DECOUPLING_PIVOT)?;
         if !scan.negative.is_empty() {
             return Ok((scan, None));
         }
@@ -1401,39 +1366,47 @@ pub fn scan_pivots(
     order: Option<&EliminationOrder>,
     ratio: f64,
 ) -> Result<PivotScan, FactorError> {
-    use faer::linalg::cholesky::ldlt::factor::LdltRegularization;
-    let n = lower.nrows();
-    let adiag = lower_diagonal(lower);
-    let scale = adiag.iter().fold(0.0f64, |m, v| m.max(v.abs())).max(f64::MIN_POSITIVE);
-    // A distinctive value, so regularised pivots can be recognised exactly.
-    let delta = scale * (1.0 + 1.0 / 1024.0);
-    let eps = ratio * scale;
     let symbolic = symbolic_cholesky(lower, order)?;
     let mut values = vec![0.0f64; symbolic.len_val()];
+    // A distinctive value, so regularised pivots can be recognised exactly.
+    Ok(regularised_ldlt(&symbolic, &mut values, lower, ratio, 1.0 + 1.0 / 1024.0)?.0)
+}
+
+/// `LDLᵀ` of `lower` in `symbolic`'s order into `values`, with faer's
+/// dynamic regularization: a pivot with `|d| ≤ ratio × max diag` becomes
+/// `delta = pivot × max diag` (returned). The scan: the rows whose pivot
+/// was so replaced (sorted), and those with a negative pivot.
+fn regularised_ldlt(
+    symbolic: &SymbolicCholesky<usize>,
+    values: &mut [f64],
+    lower: &SparseColMat<usize, f64>,
+    ratio: f64,
+    pivot: f64,
+) -> Result<(PivotScan, f64), FactorError> {
+    use faer::linalg::cholesky::ldlt::factor::LdltRegularization;
+    let adiag = lower_diagonal(lower);
+    let scale = adiag.iter().fold(0.0f64, |m, v| m.max(v.abs())).max(f64::MIN_POSITIVE);
+    let delta = scale * pivot;
     let req = symbolic.factorize_numeric_ldlt_scratch::<f64>(Par::Seq, Spec::default());
     let mut buf = MemBuffer::try_new(req).map_err(|_| FactorError::Internal("out of memory".into()))?;
     symbolic
         .factorize_numeric_ldlt(
-            &mut values,
+            values,
             lower.as_ref(),
             Side::Lower,
             LdltRegularization {
                 dynamic_regularization_signs: None,
                 dynamic_regularization_delta: delta,
-                dynamic_regularization_epsilon: eps,
+                dynamic_regularization_epsilon: ratio * scale,
             },
             Par::Seq,
             MemStack::new(&mut buf),
             Spec::default(),
         )
         .map_err(|e| FactorError::Internal(format!("LDLT: {e:?}")))?;
-    let fwd: Vec<usize> = match symbolic.perm() {
-        Some(p) => p.arrays().0.to_vec(),
-        None => (0..n).collect(),
-    };
-    let d = l_diagonal(&symbolic, &values);
+    let fwd = forward_perm(symbolic);
     let mut scan = PivotScan::default();
-    for (p, &dp) in d.iter().enumerate() {
+    for (p, &dp) in l_diagonal(symbolic, values).iter().enumerate() {
         let orig = fwd[p];
         if dp.abs() == delta {
             scan.negligible.push(orig);
@@ -1443,7 +1416,7 @@ pub fn scan_pivots(
         }
     }
     scan.negligible.sort_unstable();
-    Ok(scan)
+    Ok((scan, delta))
 }
 
 /// Pivot given to a negligible pivot by
