@@ -1293,17 +1293,25 @@ fn forward_skipping_zeros(col_ptr: &[usize], row_idx: &[usize], values: &[f64], 
 /// Diagonal of the stored factor (of `L` for LLT, of `D` for LDLT), in the
 /// permuted order.
 fn l_diagonal(symbolic: &SymbolicCholesky<usize>, values: &[f64]) -> Vec<f64> {
-    let n = symbolic.nrows();
-    let mut d = vec![0.0; n];
+    let mut d = vec![0.0; symbolic.nrows()];
+    for_each_factor_column(symbolic, |j, diag, _| d[j] = values[diag]);
+    d
+}
+
+/// Walks the columns of a factor stored in `symbolic`'s layout, in the
+/// permuted order: `f(column, index of its diagonal entry, indices of the
+/// entries below it)`, indices into the factor's values.
+fn for_each_factor_column(
+    symbolic: &SymbolicCholesky<usize>,
+    mut f: impl FnMut(usize, usize, &mut dyn Iterator<Item = usize>),
+) {
     match symbolic.raw() {
         SymbolicCholeskyRaw::Simplicial(s) => {
             let cp = s.col_ptr();
             let ri = s.row_idx();
-            for j in 0..n {
-                for p in cp[j]..cp[j + 1] {
-                    if ri[p] == j {
-                        d[j] = values[p];
-                    }
+            for j in 0..symbolic.nrows() {
+                if let Some(diag) = (cp[j]..cp[j + 1]).find(|&p| ri[p] == j) {
+                    f(j, diag, &mut (cp[j]..cp[j + 1]).filter(|&p| ri[p] != j));
                 }
             }
         }
@@ -1314,14 +1322,13 @@ fn l_diagonal(symbolic: &SymbolicCholesky<usize>, values: &[f64]) -> Vec<f64> {
             for sn in 0..s.n_supernodes() {
                 let ncols = end[sn] - begin[sn];
                 let nrows = (cpv[sn + 1] - cpv[sn]) / ncols.max(1);
-                let block = &values[cpv[sn]..cpv[sn + 1]];
                 for j in 0..ncols {
-                    d[begin[sn] + j] = block[j * nrows + j];
+                    let col = cpv[sn] + j * nrows;
+                    f(begin[sn] + j, col + j, &mut (col + j + 1..col + nrows));
                 }
             }
         }
     }
-    d
 }
 
 /// Pivots of a symmetric matrix that is singular or indefinite, found by
@@ -1427,48 +1434,15 @@ pub const DECOUPLING_PIVOT: f64 = 1e120;
 
 /// `L D Lᵀ` (unit `L`, `D > 0` but for `±decoupled`) stored by faer,
 /// turned in place into the `L Lᵀ` factor (`L D^½`). The entries below a
-/// pivot of size `decoupled`
-/// are set to zero: they are `1e-60` of their size, and exactly what the
-/// factor of the decoupled matrix has there.
+/// pivot of size `decoupled` are set to zero: they are `1e-60` of their
+/// size, and exactly what the factor of the decoupled matrix has there.
 fn ldlt_to_llt(symbolic: &SymbolicCholesky<usize>, values: &mut [f64], decoupled: f64) {
-    match symbolic.raw() {
-        SymbolicCholeskyRaw::Simplicial(s) => {
-            let cp = s.col_ptr();
-            let ri = s.row_idx();
-            for j in 0..symbolic.nrows() {
-                let range = cp[j]..cp[j + 1];
-                let d = ri[range.clone()]
-                    .iter()
-                    .position(|&i| i == j)
-                    .map_or(1.0, |p| values[cp[j] + p].abs());
-                let (root, below) = if d == decoupled {
-                    (d.sqrt(), 0.0)
-                } else {
-                    (d.sqrt(), d.sqrt())
-                };
-                for p in range {
-                    values[p] = if ri[p] == j { root } else { values[p] * below };
-                }
-            }
-        }
-        SymbolicCholeskyRaw::Supernodal(s) => {
-            let begin = s.supernode_begin();
-            let end = s.supernode_end();
-            let cpv = s.col_ptr_for_val();
-            for sn in 0..s.n_supernodes() {
-                let ncols = end[sn] - begin[sn];
-                let nrows = (cpv[sn + 1] - cpv[sn]) / ncols.max(1);
-                let block = &mut values[cpv[sn]..cpv[sn + 1]];
-                for j in 0..ncols {
-                    let col = &mut block[j * nrows..(j + 1) * nrows];
-                    let d = col[j].abs();
-                    let below = if d == decoupled { 0.0 } else { d.sqrt() };
-                    col[j] = d.sqrt();
-                    col[j + 1..].iter_mut().for_each(|v| *v *= below);
-                }
-            }
-        }
-    }
+    for_each_factor_column(symbolic, |_, diag, below| {
+        let d = values[diag].abs();
+        let scale = if d == decoupled { 0.0 } else { d.sqrt() };
+        values[diag] = d.sqrt();
+        below.for_each(|p| values[p] *= scale);
+    });
 }
 
 /// Diagonal of the matrix whose lower triangle (CSC) is `lower`
