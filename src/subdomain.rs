@@ -414,10 +414,10 @@ impl SubdomainOperator {
             return Err(kernel_too_large(id, fixing.len()));
         }
         let scale = diag_max(&stiffness);
-        // The scan's own factor, with the negligible pivots decoupled,
-        // unless barely negative ones are to be decoupled too.
+        // The scan's own factor, with the negligible pivots decoupled; none
+        // when barely negative ones are to be decoupled too.
         let chol = match decoupled {
-            Some(mut c) if scan.negative.is_empty() => {
+            Some(mut c) => {
                 c.set_max_rhs(max_rhs.max(fixing.len()))
                     .map_err(|e| Error::Numerical(format!("subdomain {id}: {e:?}")))?;
                 c
