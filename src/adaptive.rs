@@ -110,24 +110,102 @@ pub fn face_entries(dec: &Decomposition) -> Vec<Vec<usize>> {
         .collect()
 }
 
+/// One subdomain's adaptive work, kept for a later set-up that takes its
+/// operator over (the nonsmooth cg's active-set steps, where most
+/// subdomains keep their cables from one step to the next): a Neumann
+/// block depends only on the operator and its rows, and a face's
+/// constraints only on its two sides, its macro columns and the
+/// threshold. On the nonsmooth 30³ tower cut in 16 the face and edge
+/// blocks and the face eigenproblems were half of each step's set-up.
+#[derive(Default)]
+pub(crate) struct SideCache {
+    /// Neumann blocks of the faces by local rows (a failed block is not kept).
+    faces: Vec<(Vec<u32>, Mat<f64>)>,
+    /// The same for the edges.
+    edges: Vec<(Vec<u32>, Mat<f64>)>,
+    /// Normalised constraints of the faces this subdomain is the `lo` side
+    /// of, by [`constraint_key`].
+    constraints: Vec<(u64, Mat<f64>)>,
+}
+
+impl SideCache {
+    /// The constraints kept under `key`, if any.
+    pub(crate) fn constraints(&self, key: u64) -> Option<&Mat<f64>> {
+        self.constraints.iter().find(|(k, _)| *k == key).map(|(_, c)| c)
+    }
+
+    /// Keeps `found` as the constraints of this set-up's faces (the
+    /// earlier ones go).
+    pub(crate) fn set_constraints(&mut self, found: Vec<(u64, Mat<f64>)>) {
+        self.constraints = found;
+    }
+}
+
+/// The key of a face's constraints: a hash of every bit they are computed
+/// from (the threshold, the macro columns on the face, both sides' blocks).
+/// Equal inputs give equal constraints; a collision, improbable at 64 bits,
+/// would only hand a face another face's constraints, which changes the
+/// iteration count, not the answer (the macro space is a coarse space).
+pub(crate) fn constraint_key(theta: f64, pf: &Mat<f64>, lo: &FaceSide, hi: &FaceSide) -> u64 {
+    use std::hash::Hasher;
+    let mut h = std::collections::hash_map::DefaultHasher::new();
+    h.write_u64(theta.to_bits());
+    for m in [pf, &lo.principal, &lo.neumann, &hi.principal, &hi.neumann] {
+        h.write_usize(m.nrows());
+        h.write_usize(m.ncols());
+        for j in 0..m.ncols() {
+            for &v in m.col_as_slice(j) {
+                h.write_u64(v.to_bits());
+            }
+        }
+    }
+    h.finish()
+}
+
+/// The Neumann block of `op` on `rows` from `earlier` (taken out) if it is
+/// there, else computed; kept in `now` either way (a failed one is not).
+fn neumann_kept(
+    op: &mut SubdomainOperator,
+    rows: &[u32],
+    earlier: &mut Vec<(Vec<u32>, Mat<f64>)>,
+    now: &mut Vec<(Vec<u32>, Mat<f64>)>,
+    scratch: &mut Vec<f64>,
+    reused: &std::sync::atomic::AtomicUsize,
+) -> Result<Option<Mat<f64>>> {
+    if let Some(k) = earlier.iter().position(|(r, _)| r == rows) {
+        let (r, b) = earlier.swap_remove(k);
+        reused.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        now.push((r, b.clone()));
+        return Ok(Some(b));
+    }
+    let b = neumann_block(op, rows, scratch)?;
+    if let Some(b) = &b {
+        now.push((rows.to_vec(), b.clone()));
+    }
+    Ok(b)
+}
+
 /// Both sides of every face whose subdomains are held here (`operators`
 /// and `pool` from subdomain `first` on), in parallel over subdomains. Each
 /// subdomain's interior problem and principal face blocks go into its
 /// `pool` entry (taken over if they are there already), where the cg
 /// set-up takes them over for its deluxe weights: same rows, same order.
 /// A face whose Neumann block fails (an eigensolve) gets no side there.
+/// Neumann blocks come from the subdomain's [`SideCache`] where they are
+/// there (counted in `reused`), and go there.
 pub(crate) fn face_sides(
     dec: &Decomposition,
     first: usize,
     operators: &mut [SubdomainOperator],
-    pool: &mut [(Option<InteriorProblem>, Vec<FaceBlock>)],
+    pool: &mut [(Option<InteriorProblem>, Vec<FaceBlock>, SideCache)],
     faces: &[Vec<usize>],
+    reused: &std::sync::atomic::AtomicUsize,
 ) -> Result<Vec<[Option<FaceSide>; 2]>> {
     let sides = operators
         .par_iter_mut()
         .zip(pool.par_iter_mut())
         .enumerate()
-        .map(|(k, (op, (interior, kept)))| -> Result<Vec<(usize, FaceSide)>> {
+        .map(|(k, (op, (interior, kept, cache)))| -> Result<Vec<(usize, FaceSide)>> {
             let s = first + k;
             let sd = &dec.subdomains[s];
             let boundary: Vec<u32> = (0..sd.multiplicity.len() as u32)
@@ -140,6 +218,7 @@ pub(crate) fn face_sides(
             let ip = interior.as_mut().expect("set above");
             let mut out = Vec::with_capacity(sd.interfaces.len());
             let mut scratch = Vec::new();
+            let mut earlier = std::mem::take(&mut cache.faces);
             for &i in &sd.interfaces {
                 let it = &dec.interfaces[i];
                 let local = if it.lo == s {
@@ -159,7 +238,7 @@ pub(crate) fn face_sides(
                         b
                     }
                 };
-                if let Some(neumann) = neumann_block(op, &rows, &mut scratch)? {
+                if let Some(neumann) = neumann_kept(op, &rows, &mut earlier, &mut cache.faces, &mut scratch, reused)? {
                     out.push((i, FaceSide { principal, neumann }));
                 }
             }
@@ -183,21 +262,23 @@ pub(crate) fn face_sides(
 /// FaceSide::pack()...]`, subdomains in order, each subdomain's edges in
 /// order. Uses the interior problems [`face_sides`] left in `pool`. A side
 /// whose Neumann block fails (an eigensolve) is left out, and its edge
-/// gets no constraints.
+/// gets no constraints. Neumann blocks are kept as in [`face_sides`].
 pub(crate) fn edge_sides(
     edges: &Edges,
     first: usize,
     operators: &mut [SubdomainOperator],
-    pool: &mut [(Option<InteriorProblem>, Vec<FaceBlock>)],
+    pool: &mut [(Option<InteriorProblem>, Vec<FaceBlock>, SideCache)],
+    reused: &std::sync::atomic::AtomicUsize,
 ) -> Result<Vec<f64>> {
     let parts = operators
         .par_iter_mut()
         .zip(pool.par_iter_mut())
         .enumerate()
-        .map(|(k, (op, (interior, _)))| -> Result<Vec<f64>> {
+        .map(|(k, (op, (interior, _, cache)))| -> Result<Vec<f64>> {
             let s = first + k;
             let mut out = Vec::new();
             let mut scratch = Vec::new();
+            let mut earlier = std::mem::take(&mut cache.edges);
             for &e in &edges.of_subdomain[s] {
                 let edge = &edges.edges[e];
                 let m = edge.subdomains.binary_search(&s).expect("an edge lists its subdomains");
@@ -206,7 +287,7 @@ pub(crate) fn edge_sides(
                     continue;
                 };
                 let principal = principal_block(ip, op, rows)?;
-                if let Some(neumann) = neumann_block(op, rows, &mut scratch)? {
+                if let Some(neumann) = neumann_kept(op, rows, &mut earlier, &mut cache.edges, &mut scratch, reused)? {
                     out.extend([e as f64, m as f64]);
                     out.extend(FaceSide { principal, neumann }.pack());
                 }
@@ -545,18 +626,38 @@ pub fn principal_block(ip: &mut InteriorProblem, op: &SubdomainOperator, rows: &
 /// they cannot repeat each other at cross points (on the edges they do,
 /// and cg broke down when they were allowed there).
 pub fn enrich(p: Mat<f64>, face: &[usize], lo: &FaceSide, hi: &FaceSide, theta: f64) -> (Mat<f64>, usize) {
-    let pf = Mat::from_fn(face.len(), p.ncols(), |i, j| p[(face[i], j)]);
+    let pf = face_rows(&p, face);
+    let extra = face_constraints(&pf, lo, hi, theta);
+    enrich_with(p, face, &extra)
+}
+
+/// `p`'s rows on the face (`face`: entries of the interface).
+pub fn face_rows(p: &Mat<f64>, face: &[usize]) -> Mat<f64> {
+    Mat::from_fn(face.len(), p.ncols(), |i, j| p[(face[i], j)])
+}
+
+/// The constraints [`enrich`] adds to a face whose macro columns are `pf`
+/// there, orthonormal (`face × k`, `k` = 0 where none or the eigensolve
+/// failed).
+pub fn face_constraints(pf: &Mat<f64>, lo: &FaceSide, hi: &FaceSide, theta: f64) -> Mat<f64> {
     // A failed eigensolve leaves the face without adaptive columns.
-    let extra = match face_modes(lo, hi, &pf, theta) {
-        Ok(extra) if extra.ncols() > 0 => extra,
-        _ => return (p, 0),
-    };
-    // The constraints are orthogonal to `p` on the face already; their own
-    // basis drops near-repeats, which add nothing but conditioning trouble
-    // to the coarse problem.
-    let extra = orthonormal_columns(&extra, EXTRA_RANK_RTOL);
+    match face_modes(lo, hi, pf, theta) {
+        // The constraints are orthogonal to `p` on the face already; their
+        // own basis drops near-repeats, which add nothing but conditioning
+        // trouble to the coarse problem.
+        Ok(extra) if extra.ncols() > 0 => orthonormal_columns(&extra, EXTRA_RANK_RTOL),
+        _ => Mat::zeros(pf.nrows(), 0),
+    }
+}
+
+/// `p` with the face constraints `extra` ([`face_constraints`]) as new
+/// columns: the new orthonormal block and the number of columns added.
+pub fn enrich_with(p: Mat<f64>, face: &[usize], extra: &Mat<f64>) -> (Mat<f64>, usize) {
+    if extra.ncols() == 0 {
+        return (p, 0);
+    }
     let entries: Vec<u32> = face.iter().map(|&i| i as u32).collect();
-    with_columns(p, &[(&entries, &extra)])
+    with_columns(p, &[(&entries, extra)])
 }
 
 /// The constraints (`face × k`, orthogonal to the columns of `p`, not

@@ -318,6 +318,8 @@ pub(crate) struct SubState {
     /// kept for a later set-up that takes this subdomain over
     /// ([`DdSolver::new_pooled`]); `None`: not kept.
     pub(crate) face_blocks: Option<Vec<FaceBlock>>,
+    /// The adaptive blocks and face constraints, kept the same way.
+    pub(crate) side_cache: Option<adaptive::SideCache>,
     /// What `z` and this subdomain's coarse contribution were computed
     /// from, kept for a later set-up; `None`: not kept.
     pub(crate) coarse_kept: Option<CoarseBlocks>,
@@ -425,8 +427,9 @@ fn solve_some_columns(op: &mut SubdomainOperator, z: &mut [f64], n: usize, cols:
 /// A Schur-complement face block `S_E[rows, rows]` and its rows.
 pub(crate) type FaceBlock = (Vec<u32>, Mat<f64>);
 
-/// Per subdomain held: the interior factor and face blocks taken over.
-type PooledBlocks = Vec<(Option<InteriorProblem>, Vec<FaceBlock>)>;
+/// Per subdomain held: the interior factor, face blocks and adaptive
+/// blocks taken over.
+type PooledBlocks = Vec<(Option<InteriorProblem>, Vec<FaceBlock>, adaptive::SideCache)>;
 /// Per subdomain held: `Z_E` and the coarse blocks taken over.
 type PooledCoarse = Vec<Option<(Mat<f64>, CoarseBlocks)>>;
 
@@ -440,6 +443,8 @@ pub(crate) struct PooledSubdomain {
     pub(crate) op: SubdomainOperator,
     interior: Option<InteriorProblem>,
     face_blocks: Vec<FaceBlock>,
+    /// The adaptive macro space's blocks and face constraints.
+    adaptive: adaptive::SideCache,
     /// `Z_E` and the blocks it gave, see [`CoarseBlocks`].
     coarse: Option<(Mat<f64>, CoarseBlocks)>,
 }
@@ -520,6 +525,11 @@ pub struct DdStats {
     /// steps; see `NonsmoothOutcome::reused`).
     pub interiors_reused: usize,
     pub face_blocks_reused: usize,
+    /// Neumann blocks of the adaptive macro space (faces and edges) and
+    /// face constraints taken over from an earlier set-up (the nonsmooth
+    /// CG's active-set steps).
+    pub neumann_blocks_reused: usize,
+    pub face_constraints_reused: usize,
     /// Subdomains whose coarse blocks (`Z_E`, `L_E`, `G_E`) were taken over
     /// from the previous set-up: same operator and same macro columns on
     /// their interfaces, so no multi-RHS solve.
@@ -765,11 +775,11 @@ impl DdSolver {
             .map(|p| match p {
                 Some(p) => {
                     coarse.push(p.coarse);
-                    (Some(p.op), (p.interior, p.face_blocks))
+                    (Some(p.op), (p.interior, p.face_blocks, p.adaptive))
                 }
                 None => {
                     coarse.push(None);
-                    (None, (None, Vec::new()))
+                    (None, Default::default())
                 }
             })
             .unzip();
@@ -933,6 +943,7 @@ impl DdSolver {
         // algebraic problem, which has no element stiffnesses to judge by.
         let adaptive_threshold = opts.adaptive_threshold.resolve(std::iter::empty());
         let mut adaptive_s = 0.0;
+        let (mut neumann_blocks_reused, mut face_constraints_reused) = (0, 0);
         if use_coarse {
             // Each side's kernel on the interface entries (column-major).
             let traces = seam.exchange(|i, is_lo| {
@@ -957,10 +968,19 @@ impl DdSolver {
             };
             let degree = opts.macro_degree.resolve(flat, adaptive_on, opts.krylov);
             let t_adaptive = Instant::now();
+            let neumann_reused = std::sync::atomic::AtomicUsize::new(0);
+            let constraints_reused = std::sync::atomic::AtomicUsize::new(0);
             let (face_entries, face_sides) = if adaptive_on {
                 let entries = adaptive::face_entries(dec);
-                let pool = pooled.get_or_insert_with(|| (0..owned.len()).map(|_| (None, Vec::new())).collect());
-                let held = seam.agree(adaptive::face_sides(dec, first, &mut operators, pool, &entries))?;
+                let pool = pooled.get_or_insert_with(|| (0..owned.len()).map(|_| Default::default()).collect());
+                let held = seam.agree(adaptive::face_sides(
+                    dec,
+                    first,
+                    &mut operators,
+                    pool,
+                    &entries,
+                    &neumann_reused,
+                ))?;
                 // Each face's two sides where either is held (from the
                 // neighbour's process under MPI; copies in one process).
                 let sides = seam.exchange(|i, is_lo| {
@@ -998,7 +1018,13 @@ impl DdSolver {
                     let edges = Edges::new(&entries, &dofs, &mult);
                     drop((entries, dofs, mult));
                     let pool = pooled.as_mut().expect("the face sides set it");
-                    let held = seam.agree(adaptive::edge_sides(&edges, first, &mut operators, pool))?;
+                    let held = seam.agree(adaptive::edge_sides(
+                        &edges,
+                        first,
+                        &mut operators,
+                        pool,
+                        &neumann_reused,
+                    ))?;
                     let constraints = adaptive::edge_constraints(&edges, &seam.gather(&held), adaptive_threshold);
                     let ends: Vec<(usize, usize)> = dec.interfaces.iter().map(|it| (it.lo, it.hi)).collect();
                     let has_face: Vec<bool> = face_entries.iter().map(|f| !f.is_empty()).collect();
@@ -1021,7 +1047,10 @@ impl DdSolver {
             let n_edge = std::sync::atomic::AtomicUsize::new(0);
             let highest_degree = std::sync::atomic::AtomicU8::new(0);
             let n_polynomial = std::sync::atomic::AtomicUsize::new(0);
-            let blocks: Vec<Option<Mat<f64>>> = dec
+            // Each block, and each held face's constraints for the next set-up
+            // (`lo` subdomain here, key, constraints).
+            type Kept = Option<(usize, u64, Mat<f64>)>;
+            let (blocks, kept_constraints): (Vec<Option<Mat<f64>>>, Vec<Kept>) = dec
                 .interfaces
                 .par_iter()
                 .zip(ifaces.par_iter())
@@ -1029,12 +1058,13 @@ impl DdSolver {
                 .enumerate()
                 .map(|(i, ((it, st), [tl, th]))| {
                     if !touched(st) {
-                        return None;
+                        return (None, None);
                     }
+                    let mut kept = None;
                     let n = it.len();
                     let tlo = Mat::from_fn(n, kernel_dims[it.lo], |j, q| tl[q * n + j]);
                     let thi = Mat::from_fn(n, kernel_dims[it.hi], |j, q| th[q * n + j]);
-                    Some(if natural_only {
+                    let block = if natural_only {
                         // No geometric modes: no dof points needed (the
                         // algebraic level may not have them).
                         MacroBasis::kernel_block(&tlo, &thi)
@@ -1059,8 +1089,22 @@ impl DdSolver {
                         let p = MacroBasis::interface_block(&points, &comp, &tlo, &thi, degree, rtol);
                         let p = match face_sides.get(i) {
                             Some([Some(lo), Some(hi)]) => {
-                                let (p, added) = adaptive::enrich(p, &face_entries[i], lo, hi, adaptive_threshold);
+                                let face = &face_entries[i];
+                                let pf = adaptive::face_rows(&p, face);
+                                let key = adaptive::constraint_key(adaptive_threshold, &pf, lo, hi);
+                                let earlier = local(it.lo)
+                                    .and_then(|k| pooled.as_ref()?.get(k))
+                                    .and_then(|(_, _, cache)| cache.constraints(key));
+                                let extra = match earlier {
+                                    Some(c) => {
+                                        constraints_reused.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                                        c.clone()
+                                    }
+                                    None => adaptive::face_constraints(&pf, lo, hi, adaptive_threshold),
+                                };
+                                let (p, added) = adaptive::enrich_with(p, face, &extra);
                                 n_adaptive.fetch_add(added, std::sync::atomic::Ordering::Relaxed);
+                                kept = local(it.lo).map(|k| (k, key, extra));
                                 p
                             }
                             _ => p,
@@ -1075,10 +1119,24 @@ impl DdSolver {
                             }
                             _ => p,
                         }
-                    })
+                    };
+                    (Some(block), kept)
                 })
-                .collect();
+                .unzip();
             drop((traces, edge_columns));
+            // The faces' constraints for a later set-up that takes their
+            // `lo` subdomain over (the others go).
+            if let Some(pool) = pooled.as_mut() {
+                let mut found: Vec<Vec<(u64, Mat<f64>)>> = vec![Vec::new(); pool.len()];
+                for (k, key, c) in kept_constraints.into_iter().flatten() {
+                    found[k].push((key, c));
+                }
+                for ((_, _, cache), f) in pool.iter_mut().zip(found) {
+                    cache.set_constraints(f);
+                }
+            }
+            neumann_blocks_reused = neumann_reused.into_inner();
+            face_constraints_reused = constraints_reused.into_inner();
             adaptive_edge_columns = n_edge.into_inner();
             macro_degree = highest_degree.into_inner();
             polynomial_interfaces = n_polynomial.into_inner();
@@ -1161,7 +1219,7 @@ impl DdSolver {
         let keep = pooled.is_some();
         let mut pooled = pooled.unwrap_or_default().into_iter();
         for (k, (op, load)) in operators.into_iter().zip(loads).enumerate() {
-            let (interior, face_blocks) = pooled.next().unwrap_or_default();
+            let (interior, face_blocks, side_cache) = pooled.next().unwrap_or_default();
             let (z, coarse_kept) = match kept_coarse.next().flatten().filter(|_| use_coarse) {
                 Some((z, b)) => (z, Some(b)),
                 None => (Mat::zeros(0, 0), None),
@@ -1208,6 +1266,7 @@ impl DdSolver {
                 dforce2: 0.0,
                 interior,
                 face_blocks: keep.then_some(face_blocks),
+                side_cache: keep.then_some(side_cache),
                 op,
             });
         }
@@ -1410,6 +1469,8 @@ impl DdSolver {
             interior_s: 0.0,
             interiors_reused: 0,
             face_blocks_reused: 0,
+            neumann_blocks_reused,
+            face_constraints_reused,
             coarse_blocks_reused: reused_blocks.into_inner(),
             coarse_columns_reused: reused_columns.into_inner(),
             near_blocks: 0,
@@ -1643,6 +1704,7 @@ impl DdSolver {
                 op: s.op,
                 interior: s.interior,
                 face_blocks: s.face_blocks.unwrap_or_default(),
+                adaptive: s.side_cache.unwrap_or_default(),
                 coarse: s.coarse_kept.map(|b| (s.z, b)),
             })
             .collect()
@@ -2172,6 +2234,59 @@ mod tests {
         assert!(a.u.iter().zip(&b.u).all(|(x, y)| x.to_bits() == y.to_bits()));
     }
 
+    /// An adaptive set-up taken over keeps its Neumann blocks (same
+    /// operator, same rows) and its face constraints (same sides, macro
+    /// columns and threshold), and solves with the bits of a fresh one; a
+    /// new threshold keeps the blocks but solves every face eigenproblem
+    /// again.
+    #[test]
+    fn adaptive_blocks_are_taken_over_with_their_operator() {
+        // The README's tower, taut: bars 1e4 × the cables, 4 subdomains.
+        let scene = crate::generate::tower(&crate::generate::TowerParams {
+            nx: 2,
+            ny: 2,
+            nz: 10,
+            unilateral: false,
+            ..Default::default()
+        });
+        let (model, dec, mut opts) = cg_test_problem_on(&scene, 4);
+        (opts.tolerance, opts.max_iterations) = (1e-8, 500);
+        opts.adaptive_threshold = AdaptiveThreshold::Value(10.0);
+        let f = model.load_cases[0].clone();
+        let mut fresh = DdSolver::new_pooled(&model, &dec, opts.clone(), Vec::new(), Placement::Process).unwrap();
+        assert!(fresh.stats.adaptive_columns > 0, "the threshold adds columns");
+        assert_eq!(
+            (fresh.stats.neumann_blocks_reused, fresh.stats.face_constraints_reused),
+            (0, 0)
+        );
+        let a = fresh.solve(&f, false, None).unwrap();
+        assert_eq!(a.status, Status::Converged);
+        let pooled: Vec<Option<PooledSubdomain>> = fresh.into_pooled().into_iter().map(Some).collect();
+        let faces = crate::adaptive::face_entries(&dec)
+            .iter()
+            .filter(|f| !f.is_empty())
+            .count();
+        let mut again = DdSolver::new_pooled(&model, &dec, opts.clone(), pooled, Placement::Process).unwrap();
+        // Two sides per face.
+        assert_eq!(again.stats.neumann_blocks_reused, 2 * faces);
+        assert_eq!(again.stats.face_constraints_reused, faces);
+        let b = again.solve(&f, false, None).unwrap();
+        assert_eq!(a.iterations, b.iterations);
+        assert!(a.u.iter().zip(&b.u).all(|(x, y)| x.to_bits() == y.to_bits()));
+        // Another threshold: other constraints, from the same blocks.
+        opts.adaptive_threshold = AdaptiveThreshold::Value(3.0);
+        let pooled: Vec<Option<PooledSubdomain>> = again.into_pooled().into_iter().map(Some).collect();
+        let mut third = DdSolver::new_pooled(&model, &dec, opts.clone(), pooled, Placement::Process).unwrap();
+        assert_eq!(third.stats.neumann_blocks_reused, 2 * faces);
+        assert_eq!(third.stats.face_constraints_reused, 0);
+        let mut own = DdSolver::new_pooled(&model, &dec, opts, Vec::new(), Placement::Process).unwrap();
+        assert_eq!(third.stats.adaptive_columns, own.stats.adaptive_columns);
+        let c = third.solve(&f, false, None).unwrap();
+        let d = own.solve(&f, false, None).unwrap();
+        assert_eq!(c.iterations, d.iterations);
+        assert!(c.u.iter().zip(&d.u).all(|(x, y)| x.to_bits() == y.to_bits()));
+    }
+
     /// Coarse blocks are taken over only where the macro columns are the
     /// same: a set-up whose macro space grew (adaptive columns) from a
     /// pool of one without them solves with the bits of a fresh set-up of
@@ -2198,6 +2313,7 @@ mod tests {
             Some(PooledSubdomain {
                 interior: None,
                 face_blocks: Vec::new(),
+                adaptive: Default::default(),
                 ..p
             })
         };

@@ -935,11 +935,12 @@ impl NonsmoothCg {
                 );
                 let st = self.current.as_ref().unwrap().dd.stats();
                 eprintln!(
-                    "   kernel {} macro {} nnz_l {} factor {:.3}s coarse {:.3}s interior {:.3}s scaling {:.3}s; subdomains factored {} reused {} (interiors {}, face blocks {}, coarse blocks {}) so far; this set-up kept {} coarse columns",
+                    "   kernel {} macro {} nnz_l {} factor {:.3}s adaptive {:.3}s coarse {:.3}s interior {:.3}s scaling {:.3}s; subdomains factored {} reused {} (interiors {}, face blocks {}, coarse blocks {}) so far; this set-up kept {} coarse columns, {} adaptive Neumann blocks, {} face constraints",
                     st.kernel_unknowns,
                     st.macro_unknowns,
                     st.nnz_l,
                     st.factor_s,
+                    st.adaptive_s,
                     st.coarse_s,
                     st.interior_s,
                     st.scaling_s,
@@ -948,7 +949,9 @@ impl NonsmoothCg {
                     self.pool.interiors_reused,
                     self.pool.face_blocks_reused,
                     self.pool.coarse_blocks_reused,
-                    st.coarse_columns_reused
+                    st.coarse_columns_reused,
+                    st.neumann_blocks_reused,
+                    st.face_constraints_reused
                 );
                 // How the flips spread over the subdomains (of the user's
                 // partition): what a low-rank update of each factor would
