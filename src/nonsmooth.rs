@@ -269,18 +269,6 @@ pub struct NonsmoothCg {
     /// Last set a solve settled on (initial set of the next solve).
     settled: Option<Vec<bool>>,
     pool: Pool,
-    /// Solve each set on the partition restricted as it is before trying
-    /// it with its weak nodes repaired: set once an inner solve stalled on
-    /// a repaired partition (see [`NonsmoothCg::solve`]).
-    unrepaired_first: bool,
-    /// Set when, after that switch, a set could not be set up on the
-    /// plain restriction and fell back to the repaired partition: later
-    /// sets go to the repaired partition first again. Trying the plain
-    /// restriction first cost a failed set-up at every later step (the
-    /// 1e6-dof grid with 256 subdomains: a subdomain with 264 mechanisms
-    /// where 256 are allowed, step after step, 13 s of set-up per step
-    /// became 29 s).
-    plain_unusable: bool,
     /// Outer steps without progress before a solve stops ([`UNSETTLED_STEPS`]).
     unsettled_steps: usize,
     /// Whether a set whose structure is a mechanism on one partition is
@@ -364,8 +352,6 @@ struct Step {
     /// Element of the full model behind each element of `dec`'s structure
     /// (`None`: the same numbering).
     elements: Option<Vec<usize>>,
-    /// Whether `dec` had its weak nodes repaired.
-    repaired: bool,
 }
 
 /// Interface forces keyed by `(lo, hi, global dof)`: decompositions of
@@ -543,8 +529,6 @@ impl NonsmoothCg {
                 placement,
                 ..Pool::default()
             },
-            unrepaired_first: false,
-            plain_unusable: false,
             unsettled_steps: UNSETTLED_STEPS,
             retry_mechanisms: false,
         })
@@ -646,8 +630,6 @@ impl NonsmoothCg {
             ordering: self.opts.ordering,
         };
         let (own, pool) = (&self.dec, &mut self.pool);
-        let unrepaired_first = self.unrepaired_first && !self.plain_unusable;
-        let mut plain_failed = false;
         let step = if soft || !slack.iter().any(|&s| s) {
             let lin = linear_model(model, slack, if soft { SOFT } else { 0.0 });
             let (dd, keys) = pool.setup(&lin, own, None, &opts)?;
@@ -658,30 +640,26 @@ impl NonsmoothCg {
                 dec: None,
                 keys,
                 elements: None,
-                repaired: false,
             }
         } else {
             // A local mechanism at the cut can leave a round-off pivot that
             // the subdomain takes for indefinite (bar/cable contrast 1e4):
             // the set is tried on the restricted partition with its weak
-            // nodes repaired and as it is (in the order `unrepaired_first`
-            // says), then with the slack cables kept at zero stiffness,
-            // before it counts as a mechanism.
+            // nodes repaired, then as it is, then with the slack cables
+            // kept at zero stiffness, before it counts as a mechanism.
             let mut first_err = None;
             let mut found = None;
-            let order = if unrepaired_first { [false, true] } else { [true, false] };
-            for repair in order {
+            for repair in [true, false] {
                 let rr = reduced_problem(model, own, slack, repair).and_then(|(lin, dec, keep)| {
                     let (dd, keys) = pool.setup(&lin, &dec, Some(&keep), &opts)?;
                     Ok((dd, dec, keys, keep))
                 });
                 match rr {
                     Ok((dd, dec, keys, keep)) => {
-                        found = Some((dd, Some(dec), keys, Some(keep), repair));
+                        found = Some((dd, Some(dec), keys, Some(keep)));
                         break;
                     }
                     Err(e) => {
-                        plain_failed |= !repair;
                         if std::env::var_os("NSDD_NS_DEBUG").is_some() {
                             eprintln!(
                                 "   the set-up on the {} partition failed: {e}",
@@ -704,17 +682,11 @@ impl NonsmoothCg {
             if found.is_none() {
                 let lin = linear_model(model, slack, 0.0);
                 match pool.setup(&lin, own, None, &opts) {
-                    Ok((dd, keys)) => found = Some((dd, None, keys, None, false)),
+                    Ok((dd, keys)) => found = Some((dd, None, keys, None)),
                     Err(e) => return Err(first_err.unwrap_or(e)),
                 }
             }
-            let (dd, dec, keys, elements, repaired) = found.expect("set above");
-            if unrepaired_first && plain_failed && repaired {
-                if std::env::var_os("NSDD_NS_DEBUG").is_some() {
-                    eprintln!("   the plain restriction cannot be set up: the repaired partition comes first again");
-                }
-                self.plain_unusable = true;
-            }
+            let (dd, dec, keys, elements) = found.expect("set above");
             Step {
                 slack: slack.to_vec(),
                 soft,
@@ -722,7 +694,6 @@ impl NonsmoothCg {
                 dec,
                 keys,
                 elements,
-                repaired,
             }
         };
         Ok(step)
@@ -865,33 +836,15 @@ impl NonsmoothCg {
                 iteration: base + h.iteration,
                 ..h
             }));
-            // The repair moves elements across the cut; on the README's
-            // tower (160 slack cables, 4 subdomains) the repaired partition
-            // stalled the inner cg at 2e-4 where the plain restriction
-            // converges. It stays first otherwise: its subdomains have fewer
-            // mechanisms, and the set-ups cost 1.5x less on the 65² grid.
-            // Where the plain restriction then cannot be set up at all (too
-            // many mechanisms in a subdomain), the repaired partition comes
-            // first again for good (`plain_unusable`).
-            if out.status == Status::Stalled
-                && !self.unrepaired_first
-                && self.current.as_ref().is_some_and(|s| s.repaired)
-            {
-                if std::env::var_os("NSDD_NS_DEBUG").is_some() {
-                    let st = self.current.as_ref().unwrap().dd.stats();
-                    eprintln!(
-                        "outer {outer}: {} slack on the repaired partition stalled after {} its (kernel {} macro {}): every set goes to the plain restriction first from now on",
-                        slack.iter().filter(|&&s| s).count(),
-                        out.iterations,
-                        st.kernel_unknowns,
-                        st.macro_unknowns
-                    );
-                }
-                self.unrepaired_first = true;
-                self.current = None;
-                continue;
-            }
-
+            // A stalled solve is a step like the others: its strains update
+            // the set, and a settled set's stall is continued by an
+            // equilibrium correction (below). A stall on the repaired
+            // partition used to send every later set to the plain
+            // restriction, for the README's tower, which no longer stalls;
+            // on the nonsmooth 12³ tower cut in 64 that restriction's
+            // subdomains held 1 156 kernel modes and every later solve broke
+            // down, where the stalled step (2.4e-7 at 1e-8, no flips) and its
+            // correction converge (BENCHMARKS.md, session 46).
             // Strains and violations on the original cables.
             let u = out.u;
             let inner_message = out
