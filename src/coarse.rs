@@ -448,7 +448,10 @@ impl CoarseProblem {
         let unshifted = shifted_lower(0.0, 1.0)?;
         // Any factor of the unshifted block, clearly definite or not, holds
         // the symbolic analysis the shifted blocks (same pattern) reuse.
-        let mut analysed = SparseCholesky::factor_checked(&unshifted, SCHUR_BATCH, 0.0).ok();
+        // The coarse problem is factored alone, between the subdomain
+        // loops: on every thread.
+        let par = crate::factor::pool_par();
+        let mut analysed = SparseCholesky::factor_with(&unshifted, None, SCHUR_BATCH, 0.0, par).ok();
         let exact = analysed
             .as_ref()
             .is_some_and(|f| f.min_pivot_ratio(&unshifted) >= EXACT_MIN_PIVOT);
@@ -467,10 +470,10 @@ impl CoarseProblem {
                         }
                         // Another pattern after all: analysed afresh.
                         Err(FactorError::Internal(_)) => {
-                            SparseCholesky::factor_checked(&lower, SCHUR_BATCH, pivot_ratio)
+                            SparseCholesky::factor_with(&lower, None, SCHUR_BATCH, pivot_ratio, par)
                         }
                     },
-                    None => SparseCholesky::factor_checked(&lower, SCHUR_BATCH, pivot_ratio),
+                    None => SparseCholesky::factor_with(&lower, None, SCHUR_BATCH, pivot_ratio, par),
                 };
                 match attempt {
                     Ok(f) => {

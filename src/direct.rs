@@ -90,18 +90,6 @@ pub struct DirectStats {
     pub refinement_s: f64,
 }
 
-/// Parallelism of the whole-structure factorizations (the first one and
-/// the active set's refactorizations): faer's parallel supernodal LLT on
-/// every thread of the current rayon pool.
-fn whole_structure_par() -> faer::Par {
-    let t = rayon::current_num_threads().max(1);
-    if t > 1 {
-        faer::Par::rayon(t)
-    } else {
-        faer::Par::Seq
-    }
-}
-
 /// Maps a factorization pivot failure on the whole structure to a message
 /// naming the node and component.
 pub(crate) fn mechanism_error(model: &Model, dof: usize, what: &str) -> Error {
@@ -166,7 +154,7 @@ impl DirectSolver {
         if model.n_free == 0 {
             return Err(Error::Mechanism("every dof is blocked: nothing to solve".into()));
         }
-        let par = whole_structure_par();
+        let par = crate::factor::pool_par();
         let chol = SparseCholesky::factor_choosing(&k, ordering, BATCH, PIVOT_RATIO, par).map_err(|e| match e {
             FactorError::Pivot { dof, negative: true, .. } if model.effects.geometric_stiffness => Error::Mechanism(format!(
                 "the stiffness with geometric stiffness is not positive definite (negative pivot at node {} component {})",

@@ -181,6 +181,22 @@ pub fn lower_csc(n: usize, triplets: &[(usize, usize, f64)]) -> Result<SparseCol
     Ok(SparseColMat::new(symbolic, values))
 }
 
+/// faer's parallelism over every thread of the current rayon pool
+/// (`Par::Seq` on one thread): for a factorization that runs alone (the
+/// whole structure's and its active-set refactorizations, the coarse
+/// problem's), not inside the per-subdomain loops. faer's supernodal LLT
+/// splits its work without changing any sum, so the factor has the same
+/// bits on any thread count (`tests/cli.rs` compares whole runs at 1 and
+/// 2 threads).
+pub(crate) fn pool_par() -> Par {
+    let t = rayon::current_num_threads().max(1);
+    if t > 1 {
+        Par::rayon(t)
+    } else {
+        Par::Seq
+    }
+}
+
 impl SparseCholesky {
     /// Factors the SPD matrix whose lower triangle is `lower`.
     /// Scratch is sized for solves of up to `max_rhs` columns at once.
