@@ -162,24 +162,34 @@ pub(crate) fn constraint_key(theta: f64, pf: &Mat<f64>, lo: &FaceSide, hi: &Face
     h.finish()
 }
 
+/// Whether a set-up keeps its adaptive blocks for a later one, and how
+/// many it took over from an earlier one.
+pub(crate) struct Keeping<'a> {
+    pub(crate) keep: bool,
+    pub(crate) reused: &'a std::sync::atomic::AtomicUsize,
+}
+
 /// The Neumann block of `op` on `rows` from `earlier` (taken out) if it is
-/// there, else computed; kept in `now` either way (a failed one is not).
+/// there, else computed; kept in `now` where `keeping` says (a failed one
+/// is not).
 fn neumann_kept(
     op: &mut SubdomainOperator,
     rows: &[u32],
     earlier: &mut Vec<(Vec<u32>, Mat<f64>)>,
     now: &mut Vec<(Vec<u32>, Mat<f64>)>,
     scratch: &mut Vec<f64>,
-    reused: &std::sync::atomic::AtomicUsize,
+    keeping: &Keeping<'_>,
 ) -> Result<Option<Mat<f64>>> {
     if let Some(k) = earlier.iter().position(|(r, _)| r == rows) {
         let (r, b) = earlier.swap_remove(k);
-        reused.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-        now.push((r, b.clone()));
+        keeping.reused.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        if keeping.keep {
+            now.push((r, b.clone()));
+        }
         return Ok(Some(b));
     }
     let b = neumann_block(op, rows, scratch)?;
-    if let Some(b) = &b {
+    if let (Some(b), true) = (&b, keeping.keep) {
         now.push((rows.to_vec(), b.clone()));
     }
     Ok(b)
@@ -192,14 +202,14 @@ fn neumann_kept(
 /// set-up takes them over for its deluxe weights: same rows, same order.
 /// A face whose Neumann block fails (an eigensolve) gets no side there.
 /// Neumann blocks come from the subdomain's [`SideCache`] where they are
-/// there (counted in `reused`), and go there.
+/// there, and go there where `keeping` says.
 pub(crate) fn face_sides(
     dec: &Decomposition,
     first: usize,
     operators: &mut [SubdomainOperator],
     pool: &mut [(Option<InteriorProblem>, Vec<FaceBlock>, SideCache)],
     faces: &[Vec<usize>],
-    reused: &std::sync::atomic::AtomicUsize,
+    keeping: &Keeping<'_>,
 ) -> Result<Vec<[Option<FaceSide>; 2]>> {
     let sides = operators
         .par_iter_mut()
@@ -238,7 +248,7 @@ pub(crate) fn face_sides(
                         b
                     }
                 };
-                if let Some(neumann) = neumann_kept(op, &rows, &mut earlier, &mut cache.faces, &mut scratch, reused)? {
+                if let Some(neumann) = neumann_kept(op, &rows, &mut earlier, &mut cache.faces, &mut scratch, keeping)? {
                     out.push((i, FaceSide { principal, neumann }));
                 }
             }
@@ -268,7 +278,7 @@ pub(crate) fn edge_sides(
     first: usize,
     operators: &mut [SubdomainOperator],
     pool: &mut [(Option<InteriorProblem>, Vec<FaceBlock>, SideCache)],
-    reused: &std::sync::atomic::AtomicUsize,
+    keeping: &Keeping<'_>,
 ) -> Result<Vec<f64>> {
     let parts = operators
         .par_iter_mut()
@@ -287,7 +297,7 @@ pub(crate) fn edge_sides(
                     continue;
                 };
                 let principal = principal_block(ip, op, rows)?;
-                if let Some(neumann) = neumann_kept(op, rows, &mut earlier, &mut cache.edges, &mut scratch, reused)? {
+                if let Some(neumann) = neumann_kept(op, rows, &mut earlier, &mut cache.edges, &mut scratch, keeping)? {
                     out.extend([e as f64, m as f64]);
                     out.extend(FaceSide { principal, neumann }.pack());
                 }

@@ -970,6 +970,11 @@ impl DdSolver {
             let t_adaptive = Instant::now();
             let neumann_reused = std::sync::atomic::AtomicUsize::new(0);
             let constraints_reused = std::sync::atomic::AtomicUsize::new(0);
+            // Only a set-up whose blocks a later one takes over keeps copies.
+            let keeping = adaptive::Keeping {
+                keep: retain_blocks,
+                reused: &neumann_reused,
+            };
             let (face_entries, face_sides) = if adaptive_on {
                 let entries = adaptive::face_entries(dec);
                 let pool = pooled.get_or_insert_with(|| (0..owned.len()).map(|_| Default::default()).collect());
@@ -979,7 +984,7 @@ impl DdSolver {
                     &mut operators,
                     pool,
                     &entries,
-                    &neumann_reused,
+                    &keeping,
                 ))?;
                 // Each face's two sides where either is held (from the
                 // neighbour's process under MPI; copies in one process).
@@ -1018,13 +1023,7 @@ impl DdSolver {
                     let edges = Edges::new(&entries, &dofs, &mult);
                     drop((entries, dofs, mult));
                     let pool = pooled.as_mut().expect("the face sides set it");
-                    let held = seam.agree(adaptive::edge_sides(
-                        &edges,
-                        first,
-                        &mut operators,
-                        pool,
-                        &neumann_reused,
-                    ))?;
+                    let held = seam.agree(adaptive::edge_sides(&edges, first, &mut operators, pool, &keeping))?;
                     let constraints = adaptive::edge_constraints(&edges, &seam.gather(&held), adaptive_threshold);
                     let ends: Vec<(usize, usize)> = dec.interfaces.iter().map(|it| (it.lo, it.hi)).collect();
                     let has_face: Vec<bool> = face_entries.iter().map(|f| !f.is_empty()).collect();
@@ -1104,7 +1103,7 @@ impl DdSolver {
                                 };
                                 let (p, added) = adaptive::enrich_with(p, face, &extra);
                                 n_adaptive.fetch_add(added, std::sync::atomic::Ordering::Relaxed);
-                                kept = local(it.lo).map(|k| (k, key, extra));
+                                kept = local(it.lo).filter(|_| retain_blocks).map(|k| (k, key, extra));
                                 p
                             }
                             _ => p,
