@@ -2233,14 +2233,9 @@ mod tests {
         assert!(a.u.iter().zip(&b.u).all(|(x, y)| x.to_bits() == y.to_bits()));
     }
 
-    /// An adaptive set-up taken over keeps its Neumann blocks (same
-    /// operator, same rows) and its face constraints (same sides, macro
-    /// columns and threshold), and solves with the bits of a fresh one; a
-    /// new threshold keeps the blocks but solves every face eigenproblem
-    /// again.
-    #[test]
-    fn adaptive_blocks_are_taken_over_with_their_operator() {
-        // The README's tower, taut: bars 1e4 × the cables, 4 subdomains.
+    /// The README's tower, taut (bars 1e4 × the cables), on 4 subdomains,
+    /// with cg's options to 1e-8.
+    fn readme_tower_problem() -> (Model, Decomposition, DdOptions) {
         let scene = crate::generate::tower(&crate::generate::TowerParams {
             nx: 2,
             ny: 2,
@@ -2250,6 +2245,17 @@ mod tests {
         });
         let (model, dec, mut opts) = cg_test_problem_on(&scene, 4);
         (opts.tolerance, opts.max_iterations) = (1e-8, 500);
+        (model, dec, opts)
+    }
+
+    /// An adaptive set-up taken over keeps its Neumann blocks (same
+    /// operator, same rows) and its face constraints (same sides, macro
+    /// columns and threshold), and solves with the bits of a fresh one; a
+    /// new threshold keeps the blocks but solves every face eigenproblem
+    /// again.
+    #[test]
+    fn adaptive_blocks_are_taken_over_with_their_operator() {
+        let (model, dec, mut opts) = readme_tower_problem();
         opts.adaptive_threshold = AdaptiveThreshold::Value(10.0);
         let f = model.load_cases[0].clone();
         let mut fresh = DdSolver::new_pooled(&model, &dec, opts.clone(), Vec::new(), Placement::Process).unwrap();
@@ -2294,16 +2300,7 @@ mod tests {
     /// (or panic on their sizes).
     #[test]
     fn coarse_blocks_are_taken_over_only_for_the_same_macro_columns() {
-        // The README's tower, taut: bars 1e4 × the cables, 4 subdomains.
-        let scene = crate::generate::tower(&crate::generate::TowerParams {
-            nx: 2,
-            ny: 2,
-            nz: 10,
-            unilateral: false,
-            ..Default::default()
-        });
-        let (model, dec, mut opts) = cg_test_problem_on(&scene, 4);
-        (opts.tolerance, opts.max_iterations) = (1e-8, 500);
+        let (model, dec, mut opts) = readme_tower_problem();
         let f = model.load_cases[0].clone();
         let plain = DdSolver::new_pooled(&model, &dec, opts.clone(), Vec::new(), Placement::Process).unwrap();
         // Operators and coarse blocks only: the adaptive set-up takes kept
