@@ -628,27 +628,14 @@ pub fn principal_block(ip: &mut InteriorProblem, op: &SubdomainOperator, rows: &
     Ok(symmetrize(&ip.schur_block(op, rows)?))
 }
 
-/// The macro block `p` (orthonormal, `entries × m`) of an interface,
-/// enriched with the constraints of [`face_modes`] on its face (`face`:
-/// the entries no third subdomain shares): returns the new orthonormal
-/// block and the number of columns added. Constraints on the faces alone
-/// keep the blocks of different interfaces on disjoint entries, so that
-/// they cannot repeat each other at cross points (on the edges they do,
-/// and cg broke down when they were allowed there).
-pub fn enrich(p: Mat<f64>, face: &[usize], lo: &FaceSide, hi: &FaceSide, theta: f64) -> (Mat<f64>, usize) {
-    let pf = face_rows(&p, face);
-    let extra = face_constraints(&pf, lo, hi, theta);
-    enrich_with(p, face, &extra)
-}
-
 /// `p`'s rows on the face (`face`: entries of the interface).
 pub fn face_rows(p: &Mat<f64>, face: &[usize]) -> Mat<f64> {
     Mat::from_fn(face.len(), p.ncols(), |i, j| p[(face[i], j)])
 }
 
-/// The constraints [`enrich`] adds to a face whose macro columns are `pf`
-/// there, orthonormal (`face × k`, `k` = 0 where none or the eigensolve
-/// failed).
+/// The constraints of [`face_modes`] on a face whose macro columns are
+/// `pf` there, orthonormal (`face × k`, `k` = 0 where none or the
+/// eigensolve failed): the adaptive columns [`enrich_with`] adds.
 pub fn face_constraints(pf: &Mat<f64>, lo: &FaceSide, hi: &FaceSide, theta: f64) -> Mat<f64> {
     // A failed eigensolve leaves the face without adaptive columns.
     match face_modes(lo, hi, pf, theta) {
@@ -660,8 +647,13 @@ pub fn face_constraints(pf: &Mat<f64>, lo: &FaceSide, hi: &FaceSide, theta: f64)
     }
 }
 
-/// `p` with the face constraints `extra` ([`face_constraints`]) as new
-/// columns: the new orthonormal block and the number of columns added.
+/// The macro block `p` (orthonormal, `entries × m`) of an interface with
+/// the constraints `extra` of its face ([`face_constraints`]; `face`: the
+/// entries no third subdomain shares) as new columns: returns the new
+/// orthonormal block and the number of columns added. Constraints on the
+/// faces alone keep the blocks of different interfaces on disjoint
+/// entries, so that they cannot repeat each other at cross points (on the
+/// edges they do, and cg broke down when they were allowed there).
 pub fn enrich_with(p: Mat<f64>, face: &[usize], extra: &Mat<f64>) -> (Mat<f64>, usize) {
     if extra.ncols() == 0 {
         return (p, 0);
