@@ -27,7 +27,7 @@
 //! them on its edges too. Every pair of an edge's subdomains solves the
 //! eigenproblem above on the edge's dofs; the union `C_E` of their
 //! constraints is imposed on the pairs of a spanning tree of the edge's
-//! subdomains ([`edge_trees`]), which gives it on every pair by
+//! subdomains (`edge_trees`), which gives it on every pair by
 //! transitivity (`Cᵀ(u_a − u_b) = Cᵀ(u_a − u_c) + Cᵀ(u_c − u_b)`) and on no
 //! cycle of pairs: a constraint repeated around a cycle is a circulation of
 //! the redundant pair forces, which the coarse problem cannot resolve (cg

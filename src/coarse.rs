@@ -841,7 +841,7 @@ impl CoarseProblem {
     }
 
     /// Sets the backward error the refinement of later solves stops at
-    /// (never below round-off, [`BACKWARD_ERROR_TARGET`]): a caller that
+    /// (never below round-off, `BACKWARD_ERROR_TARGET`): a caller that
     /// solves only loosely (the nonsmooth CG's early active-set steps) need
     /// not pay for round-off accuracy of each coarse solve.
     pub fn set_refinement_target(&mut self, target: f64) {
@@ -1119,7 +1119,7 @@ impl KernelCoupling {
 
 /// Most stored values of `B = L⁻¹ P G` a coarse problem keeps (16 M, about
 /// 200 MB with their row indices; twice that for a moment at set-up).
-/// Beyond it `S` comes from full solves ([`schur_by_solves`]) and each
+/// Beyond it `S` comes from full solves (`schur_by_solves`) and each
 /// inner solve takes two solves with the factor.
 pub const MAX_KERNEL_COLUMN_VALUES: usize = 1 << 24;
 

@@ -505,7 +505,7 @@ impl SparseCholesky {
     ///
     /// The forward substitution skips the columns (simplicial) or
     /// supernodes (supernodal) of `L` where the right-hand sides are zero
-    /// ([`forward_skipping_zeros`]): the set-up's solves have right-hand
+    /// (`forward_skipping_zeros`): the set-up's solves have right-hand
     /// sides on one face or the interface only. Otherwise faer's
     /// arithmetic in faer's order: the same bits.
     pub fn solve_block(&mut self, mut rhs: MatMut<'_, f64>) {
@@ -1443,7 +1443,7 @@ fn regularised_ldlt(
 }
 
 /// Pivot given to a negligible pivot by
-/// [`SparseCholesky::factor_decoupling_small_pivots`], as a multiple of the
+/// `SparseCholesky::factor_decoupling_small_pivots`, as a multiple of the
 /// largest diagonal entry: large enough that the row's couplings vanish
 /// (`1e-60`), small enough that no product of the factor overflows.
 pub const DECOUPLING_PIVOT: f64 = 1e120;

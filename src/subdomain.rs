@@ -56,7 +56,7 @@ pub const SUSPECT_PIVOT_RATIO: f64 = 1e-6;
 /// `xᵀ K x / (max diag K ‖x‖²)` at most this is a mechanism (round-off
 /// leaves ~1e-17 once the columns are refined); above it, genuine soft
 /// stiffness, which stays in the factorization. Beyond
-/// [`MAX_SPAN_TEST`] suspects each column is judged alone, by
+/// `MAX_SPAN_TEST` suspects each column is judged alone, by
 /// `‖K r‖ / (max diag K ‖r‖)`.
 pub const MECHANISM_TOL: f64 = 1e-11;
 

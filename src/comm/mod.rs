@@ -83,7 +83,7 @@ impl Placement {
     }
 
     /// Whether no MPI is involved: the solve may then run on any thread
-    /// (see [`crate::method::on_workers`]).
+    /// (see `crate::method::on_workers`).
     pub fn in_process(&self) -> bool {
         matches!(self, Placement::Process)
     }

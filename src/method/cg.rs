@@ -1,6 +1,6 @@
 //! Conjugate gradient on the interface problem (linear case), over the
 //! set-up solver's interface operator, with its own workspace
-//! ([`CgWorkspace`]): the direction, residual and iterate live here, not
+//! (`CgWorkspace`): the direction, residual and iterate live here, not
 //! in the solver's state, so the operator is applied to them directly.
 
 use crate::cg_stopping::{self, CgStopping};

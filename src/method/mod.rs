@@ -11,7 +11,7 @@ pub mod stationary;
 pub mod stopping;
 
 /// A callback told `(iteration, indicator)` after every iteration. It runs
-/// on one of the solver's worker threads (see [`on_workers`]), hence `Send`.
+/// on one of the solver's worker threads (see `on_workers`), hence `Send`.
 pub type Progress<'a> = Option<&'a mut (dyn FnMut(usize, f64) + Send)>;
 
 /// Runs `f` on a worker thread of the current rayon pool (at once if this
