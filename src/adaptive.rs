@@ -129,11 +129,6 @@ pub(crate) struct SideCache {
 }
 
 impl SideCache {
-    /// The constraints kept under `key`, if any.
-    pub(crate) fn constraints(&self, key: u64) -> Option<&Mat<f64>> {
-        self.constraints.iter().find(|(k, _)| *k == key).map(|(_, c)| c)
-    }
-
     /// Keeps `found` as the constraints of this set-up's faces (the
     /// earlier ones go).
     pub(crate) fn set_constraints(&mut self, found: Vec<(u64, Mat<f64>)>) {
@@ -146,7 +141,7 @@ impl SideCache {
 /// Equal inputs give equal constraints; a collision, improbable at 64 bits,
 /// would only hand a face another face's constraints, which changes the
 /// iteration count, not the answer (the macro space is a coarse space).
-pub(crate) fn constraint_key(theta: f64, pf: &Mat<f64>, lo: &FaceSide, hi: &FaceSide) -> u64 {
+fn constraint_key(theta: f64, pf: &Mat<f64>, lo: &FaceSide, hi: &FaceSide) -> u64 {
     use std::hash::Hasher;
     let mut h = std::collections::hash_map::DefaultHasher::new();
     h.write_u64(theta.to_bits());
@@ -644,6 +639,29 @@ pub fn face_constraints(pf: &Mat<f64>, lo: &FaceSide, hi: &FaceSide, theta: f64)
         // trouble to the coarse problem.
         Ok(extra) if extra.ncols() > 0 => orthonormal_columns(&extra, EXTRA_RANK_RTOL),
         _ => Mat::zeros(pf.nrows(), 0),
+    }
+}
+
+/// [`face_constraints`] of a face, taken from `earlier` (the `lo`
+/// subdomain's cache, where it is held here) when they were computed from
+/// the same bits ([`constraint_key`]; counted in `reused`). Returns their
+/// key, for the cache of the next set-up, and the constraints.
+pub(crate) fn face_constraints_kept(
+    pf: &Mat<f64>,
+    lo: &FaceSide,
+    hi: &FaceSide,
+    theta: f64,
+    earlier: Option<&SideCache>,
+    reused: &std::sync::atomic::AtomicUsize,
+) -> (u64, Mat<f64>) {
+    let key = constraint_key(theta, pf, lo, hi);
+    let kept = earlier.and_then(|c| c.constraints.iter().find(|(k, _)| *k == key));
+    match kept {
+        Some((_, c)) => {
+            reused.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            (key, c.clone())
+        }
+        None => (key, face_constraints(pf, lo, hi, theta)),
     }
 }
 

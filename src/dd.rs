@@ -1090,17 +1090,15 @@ impl DdSolver {
                             Some([Some(lo), Some(hi)]) => {
                                 let face = &face_entries[i];
                                 let pf = adaptive::face_rows(&p, face);
-                                let key = adaptive::constraint_key(adaptive_threshold, &pf, lo, hi);
-                                let earlier = local(it.lo)
-                                    .and_then(|k| pooled.as_ref()?.get(k))
-                                    .and_then(|(_, _, cache)| cache.constraints(key));
-                                let extra = match earlier {
-                                    Some(c) => {
-                                        constraints_reused.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-                                        c.clone()
-                                    }
-                                    None => adaptive::face_constraints(&pf, lo, hi, adaptive_threshold),
-                                };
+                                let earlier = local(it.lo).and_then(|k| pooled.as_ref()?.get(k)).map(|(_, _, c)| c);
+                                let (key, extra) = adaptive::face_constraints_kept(
+                                    &pf,
+                                    lo,
+                                    hi,
+                                    adaptive_threshold,
+                                    earlier,
+                                    &constraints_reused,
+                                );
                                 let (p, added) = adaptive::enrich_with(p, face, &extra);
                                 n_adaptive.fetch_add(added, std::sync::atomic::Ordering::Relaxed);
                                 kept = local(it.lo).filter(|_| retain_blocks).map(|k| (k, key, extra));

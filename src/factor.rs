@@ -1626,7 +1626,7 @@ mod tests {
     }
 
     fn norm(v: &[f64]) -> f64 {
-        v.iter().map(|x| x * x).sum::<f64>().sqrt()
+        crate::kernels::norm2(v).sqrt()
     }
 
     /// The pivot scan's own factor is the factor of the matrix with its
