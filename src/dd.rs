@@ -286,7 +286,7 @@ pub(crate) struct SubState {
     /// diagonal of `K_E` for the lumped choice.
     pub(crate) weight: Vec<f64>,
     /// `Z_E = K_E⁺ W_E` (`n × m_E`) and the global macro index of each column.
-    pub(crate) z: Mat<f64>,
+    pub(crate) z: MacroResponses,
     pub(crate) macro_cols: Vec<usize>,
     /// The rows of `Z_E` at `iface_dofs`, and the non-zeros of `W_E`
     /// (which is zero off those dofs): the coarse right-hand side and the
@@ -385,22 +385,50 @@ pub(crate) struct CoarseBlocks {
 /// `z_old` kept for each column of `w` equal bit for bit to a column of
 /// `w_old` (the interface rows of `W_E`, same rows), and returns the
 /// columns left to solve, in increasing order. Set-up only (allocates).
-fn take_unchanged_columns(w_old: &Mat<f64>, z_old: &Mat<f64>, w: &Mat<f64>, z: &mut [f64]) -> Vec<usize> {
+fn take_unchanged_columns(w_old: &Mat<f64>, z_old: &MacroResponses, w: &Mat<f64>, z: &mut [f64]) -> Vec<usize> {
     let n = z_old.nrows();
     let bits = |m: &Mat<f64>, j: usize| -> Vec<u64> { m.col(j).iter().map(|v| v.to_bits()).collect() };
     let old: HashMap<Vec<u64>, usize> = (0..w_old.ncols()).map(|j| (bits(w_old, j), j)).collect();
     let mut fresh = Vec::new();
     for j in 0..w.ncols() {
         match old.get(&bits(w, j)) {
-            Some(&o) => {
-                for (dst, src) in z[j * n..(j + 1) * n].iter_mut().zip(z_old.col(o).iter()) {
-                    *dst = *src;
-                }
-            }
+            Some(&o) => z[j * n..(j + 1) * n].copy_from_slice(z_old.col(o)),
             None => fresh.push(j),
         }
     }
     fresh
+}
+
+/// `Z_E = K_E⁺ W_E` of a subdomain: column-major, `nrows` entries per
+/// column, in the array the batched solve wrote (no padded copy).
+#[derive(Debug, Clone, Default)]
+pub(crate) struct MacroResponses {
+    data: Vec<f64>,
+    rows: usize,
+}
+
+impl MacroResponses {
+    fn new(data: Vec<f64>, rows: usize) -> MacroResponses {
+        debug_assert!(if rows == 0 {
+            data.is_empty()
+        } else {
+            data.len() % rows == 0
+        });
+        MacroResponses { data, rows }
+    }
+
+    pub(crate) fn nrows(&self) -> usize {
+        self.rows
+    }
+
+    pub(crate) fn ncols(&self) -> usize {
+        self.data.len().checked_div(self.rows).unwrap_or(0)
+    }
+
+    /// Column `k`.
+    pub(crate) fn col(&self, k: usize) -> &[f64] {
+        &self.data[k * self.rows..(k + 1) * self.rows]
+    }
 }
 
 /// `K_E⁺` applied to the columns `cols` of `z` (column-major, `n` rows per
@@ -431,7 +459,7 @@ pub(crate) type FaceBlock = (Vec<u32>, Mat<f64>);
 /// blocks taken over.
 type PooledBlocks = Vec<(Option<InteriorProblem>, Vec<FaceBlock>, adaptive::SideCache)>;
 /// Per subdomain held: `Z_E` and the coarse blocks taken over.
-type PooledCoarse = Vec<Option<(Mat<f64>, CoarseBlocks)>>;
+type PooledCoarse = Vec<Option<(MacroResponses, CoarseBlocks)>>;
 
 /// What a set-up of a changed structure can take over from an earlier
 /// one for a subdomain whose elements and dof layout did not change
@@ -446,7 +474,7 @@ pub(crate) struct PooledSubdomain {
     /// The adaptive macro space's blocks and face constraints.
     adaptive: adaptive::SideCache,
     /// `Z_E` and the blocks it gave, see [`CoarseBlocks`].
-    coarse: Option<(Mat<f64>, CoarseBlocks)>,
+    coarse: Option<(MacroResponses, CoarseBlocks)>,
 }
 
 pub(crate) struct IfaceState {
@@ -1219,7 +1247,7 @@ impl DdSolver {
             let (interior, face_blocks, side_cache) = pooled.next().unwrap_or_default();
             let (z, coarse_kept) = match kept_coarse.next().flatten().filter(|_| use_coarse) {
                 Some((z, b)) => (z, Some(b)),
-                None => (Mat::zeros(0, 0), None),
+                None => (MacroResponses::default(), None),
             };
             let s = first + k;
             let sd = &dec.subdomains[s];
@@ -1326,7 +1354,19 @@ impl DdSolver {
                         cols.extend((0..it.p.ncols()).map(|q| it.macro_off + q));
                     }
                     let m = cols.len();
-                    let mut w = vec![0.0; n * m];
+                    // W_E is zero off the interface dofs: it is built on
+                    // those rows only (L_E = W_Iᵀ Z_I, G_E = W_Iᵀ R_I), and
+                    // the n × m array of the solves is allocated only when
+                    // columns are solved, then kept as `Z_E` without a copy
+                    // (fresh pages fault slowly: three such arrays per
+                    // subdomain were a third of this phase on the 30³
+                    // tower with 64 subdomains).
+                    let rows = &st.iface_dofs;
+                    let mut at = vec![u32::MAX; n];
+                    for (i, &l) in rows.iter().enumerate() {
+                        at[l as usize] = i as u32;
+                    }
+                    let mut wi = Mat::<f64>::zeros(rows.len(), m);
                     let mut c = 0;
                     for &(i, is_lo) in &st.ifaces {
                         let it = &ifaces[i];
@@ -1334,15 +1374,12 @@ impl DdSolver {
                         let sign = if is_lo { 1.0 } else { -1.0 };
                         for q in 0..it.p.ncols() {
                             for (j, &l) in idx.iter().enumerate() {
-                                w[c * n + l as usize] += sign * it.p[(j, q)];
+                                wi[(at[l as usize] as usize, c)] += sign * it.p[(j, q)];
                             }
                             c += 1;
                         }
                     }
-                    // W_E is zero off the interface dofs: L_E = W_Iᵀ Z_I and
-                    // G_E = W_Iᵀ R_I on those rows only.
-                    let rows = &st.iface_dofs;
-                    let wi = Mat::from_fn(rows.len(), m, |i, j| w[j * n + rows[i] as usize]);
+                    drop(at);
                     let (l_e, g_e) = match st.coarse_kept.take() {
                         // (faer's `==` asserts equal shapes: compare them first.)
                         Some(b)
@@ -1356,7 +1393,12 @@ impl DdSolver {
                             (b.l, b.g)
                         }
                         kept => {
-                            let mut z = w.clone();
+                            let mut z = vec![0.0; n * m];
+                            for (j, col) in z.chunks_exact_mut(n.max(1)).enumerate().take(m) {
+                                for (i, &l) in rows.iter().enumerate() {
+                                    col[l as usize] = wi[(i, j)];
+                                }
+                            }
                             // The same operator (the blocks are pooled with
                             // it) and rows: a column of `W_E` kept bit for
                             // bit keeps its column of `Z_E = K_E⁺ W_E`. A
@@ -1373,15 +1415,14 @@ impl DdSolver {
                                 None => (0..m).collect(),
                             };
                             solve_some_columns(&mut st.op, &mut z, n, &fresh);
-                            let zi = Mat::from_fn(rows.len(), m, |i, j| z[j * n + rows[i] as usize]);
+                            st.z = MacroResponses::new(z, n);
+                            let zi = Mat::from_fn(rows.len(), m, |i, j| st.z.col(j)[rows[i] as usize]);
                             let kernel = st.op.kernel();
                             let ri = Mat::from_fn(rows.len(), kernel.ncols(), |i, j| kernel[(rows[i] as usize, j)]);
-                            st.z = Mat::from_fn(n, m, |i, j| z[j * n + i]);
                             (wi.transpose() * &zi, wi.transpose() * &ri)
                         }
                     };
-                    drop(w);
-                    st.z_iface = Mat::from_fn(rows.len(), m, |i, j| st.z[(rows[i] as usize, j)]);
+                    st.z_iface = Mat::from_fn(rows.len(), m, |i, j| st.z.col(j)[rows[i] as usize]);
                     if retain_blocks {
                         st.coarse_kept = Some(CoarseBlocks {
                             rows: rows.clone(),
@@ -2336,7 +2377,7 @@ mod tests {
                     b.w = -&b.w;
                     b.l.fill(0.0);
                     b.g.fill(0.0);
-                    z.fill(0.0);
+                    z.data.fill(0.0);
                 }
                 strip(p)
             })
@@ -2354,7 +2395,7 @@ mod tests {
     #[test]
     fn unchanged_columns_keep_their_solution_wherever_they_moved() {
         let w_old = Mat::from_fn(3, 3, |i, j| (i + 3 * j) as f64 + 1.0);
-        let z_old = Mat::from_fn(5, 3, |i, j| 100.0 * j as f64 + i as f64);
+        let z_old = MacroResponses::new((0..15).map(|k| 100.0 * (k / 5) as f64 + (k % 5) as f64).collect(), 5);
         // New columns: old 2, old 0 changed in one entry, old 1, and zeros.
         let mut w = Mat::zeros(3, 4);
         w.col_mut(0).copy_from(w_old.col(2));
@@ -2370,6 +2411,9 @@ mod tests {
         let zero = Mat::<f64>::zeros(3, 1);
         let neg = Mat::from_fn(3, 1, |_, _| -0.0);
         let mut z1 = vec![0.0; 5];
-        assert_eq!(take_unchanged_columns(&zero, &Mat::zeros(5, 1), &neg, &mut z1), vec![0]);
+        assert_eq!(
+            take_unchanged_columns(&zero, &MacroResponses::new(vec![0.0; 5], 5), &neg, &mut z1),
+            vec![0]
+        );
     }
 }
