@@ -1076,7 +1076,7 @@ fn direct_analysis_predicts_the_factor_without_factoring() {
 /// by name.
 #[test]
 fn bench_iteration_times_cg_against_subdomain_and_interior_substitutions() {
-    let bench = |method: &str, out: &Path| {
+    let bench_for = |method: &str, iterations: &str, out: &Path| {
         nsdd(&[
             "bench",
             "iteration",
@@ -1085,21 +1085,29 @@ fn bench_iteration_times_cg_against_subdomain_and_interior_substitutions() {
             "--subdomains",
             "4",
             "--iterations",
-            "3",
+            iterations,
             "--method",
             method,
             "--out",
             s(out),
         ])
     };
-    let rows = |method: &str| -> Value {
-        let out_path = tmp(&format!("bench-iteration-{method}")).join("rows.jsonl");
-        ok(&bench(method, &out_path));
+    let bench = |method: &str, out: &Path| bench_for(method, "3", out);
+    let rows_for = |method: &str, iterations: &str| -> Value {
+        let out_path = tmp(&format!("bench-iteration-{method}-{iterations}")).join("rows.jsonl");
+        ok(&bench_for(method, iterations, &out_path));
         let body = std::fs::read_to_string(&out_path).unwrap();
         serde_json::from_str(body.lines().next().unwrap()).unwrap()
     };
+    let rows = |method: &str| rows_for(method, "3");
     let cg = rows("cg");
     assert_eq!(cg["method"], "cg");
+    assert_eq!(cg["iterations_timed"], 3);
+    // CG on 795 dofs reaches round-off long before 400 iterations: the time
+    // is divided by the iterations it did, not by the 400 asked for.
+    let long = rows_for("cg", "400");
+    let timed = long["iterations_timed"].as_u64().unwrap();
+    assert!(timed > 0 && timed < 400, "timed {timed} of 400 iterations");
     let (sub, int) = (
         cg["substitution_s"].as_f64().unwrap(),
         cg["interior_substitution_s"].as_f64().unwrap(),
