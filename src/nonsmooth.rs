@@ -16,11 +16,11 @@
 //! is named.
 //!
 //! The inner solves are inexact: their tolerance follows the size of the
-//! last complementarity violation (loose while the set moves, the
-//! requested tolerance once it has settled, from the first solve at that
-//! tolerance on, and once a step flips at most [`ENDGAME_FLIPS`] of the
-//! cables), and each starts from the interface forces of the previous
-//! one. A loose solve stops on its indicator alone; the set is
+//! last complementarity violation (loose while the set moves, tighter
+//! once a step flips at most [`ENDGAME_FLIPS`] of the cables, the
+//! requested tolerance once the set has settled and from the first solve
+//! at that tolerance on), and each starts from the interface forces of the
+//! previous one. A loose solve stops on its indicator alone; the set is
 //! accepted only after a certified solve to the requested tolerance
 //! leaves it unchanged. A set that stops settling ([`UNSETTLED_STEPS`]
 //! steps without cutting the fewest flips by a tenth) ends the solve
@@ -97,15 +97,35 @@ pub const INNER_TOL_MAX: f64 = 1e-3;
 pub const INNER_TOL_FACTOR: f64 = 0.03;
 
 /// Flips, as a fraction of the cables, at or below which the next sets are
-/// solved at the requested tolerance. The active set then is in the tail
-/// the direct solver has too (halving the flips at each step); with loose
-/// strains the cables near zero strain were decided again and again: the
-/// nonsmooth 410² grid (1e6 dofs) with 64 subdomains took 60 steps where
-/// the direct solver takes 29, 40 with this and 15 % less time; the 32² to
-/// 200² grids one to seven steps fewer, up to 40 % more iterations and the
-/// same time within the runs' spread (BENCHMARKS.md, "exact steps in the
+/// solved at [`ENDGAME_TOL_FACTOR`] of their violation. The active set then
+/// is in the tail the direct solver has too (halving the flips at each
+/// step); with the loose steps' strains the cables near zero strain were
+/// decided again and again: the nonsmooth 410² grid (1e6 dofs) with 64
+/// subdomains took 60 steps where the direct solver takes 29, 40 with the
+/// tail at the requested tolerance and 15 % less time; the 32² to 200²
+/// grids one to seven steps fewer (BENCHMARKS.md, "exact steps in the
 /// active set's tail").
 pub const ENDGAME_FLIPS: f64 = 1e-3;
+
+/// Inner tolerance of the tail's steps ([`ENDGAME_FLIPS`]) as a fraction
+/// of the last relative violation, a thirtieth of the loose steps'
+/// [`INNER_TOL_FACTOR`]; the set they settle on is then confirmed at the
+/// requested tolerance, from where they left it. Solving each tail step to
+/// the requested tolerance instead took the same set-ups and 17-18 % more
+/// iterations on the 130² grid cut in 16 and the 200² grid cut in 64 (145
+/// and 269 against 123 and 230), and one step fewer on the nonsmooth 20³
+/// tower cut in 16 (8 against 9, 106 against 112 iterations); 1e-2 saved
+/// more on the grids (114 and 212) but took that tower to 10 steps
+/// (BENCHMARKS.md, "The active set's tail at a tolerance tied to its
+/// violation").
+pub const ENDGAME_TOL_FACTOR: f64 = 1e-3;
+
+/// Flips at or below which the tail's next set is solved at the requested
+/// tolerance rather than at [`ENDGAME_TOL_FACTOR`] of its violation: it is
+/// then most likely the last set, and a looser solve would need a
+/// confirmation at the tolerance after it (without this rule, at 1e-2, the
+/// 32² grid cut in 4 took 37 iterations in 11 solves instead of 35 in 10).
+pub const ENDGAME_LAST_FLIPS: usize = 4;
 
 /// Backward error of the coarse solves as a fraction of the inner
 /// tolerance (the coarse problem clamps it at round-off, its default).
@@ -491,6 +511,63 @@ fn reduced_problem(
     Ok((m, d, keep))
 }
 
+/// The inner tolerance of each outer step: loose while the set moves
+/// ([`INNER_TOL_FACTOR`] of the last relative violation, at most
+/// [`INNER_TOL_MAX`]), tighter in the active set's tail
+/// ([`ENDGAME_FLIPS`], [`ENDGAME_TOL_FACTOR`]), the requested tolerance
+/// for a set that is most likely the last ([`ENDGAME_LAST_FLIPS`]) and
+/// from the first solve at it on: once a set has been solved at the
+/// tolerance, the few flips left are solved at it too rather than loosely
+/// and then again to confirm them.
+#[derive(Debug, Clone, Copy)]
+struct InnerTolerance {
+    tol: f64,
+    /// The last solve was at the tolerance.
+    at_tol: bool,
+    /// In the active set's tail, for good.
+    endgame: bool,
+}
+
+impl InnerTolerance {
+    fn new(tol: f64) -> InnerTolerance {
+        InnerTolerance {
+            tol,
+            at_tol: false,
+            endgame: false,
+        }
+    }
+
+    /// The tolerance of the next solve, after a last relative violation
+    /// `violation` (infinite before the first solve, 0 to confirm a set).
+    fn next(&mut self, violation: f64) -> f64 {
+        let factor = if self.endgame {
+            ENDGAME_TOL_FACTOR
+        } else {
+            INNER_TOL_FACTOR
+        };
+        let t = if self.at_tol {
+            self.tol
+        } else {
+            (factor * violation).clamp(self.tol, INNER_TOL_MAX.max(self.tol))
+        };
+        self.at_tol = !(t > self.tol);
+        t
+    }
+
+    /// A solve flipped `flips` of `cables` cables (`soft`: a softened guide
+    /// step, whose flips say little about the tail).
+    fn flipped(&mut self, flips: usize, cables: usize, soft: bool) {
+        if !soft && flips as f64 <= ENDGAME_FLIPS * cables as f64 {
+            self.endgame = true;
+            // A set this close to the last is most likely it: solved at the
+            // tolerance, it is its own confirmation.
+            if flips <= ENDGAME_LAST_FLIPS {
+                self.at_tol = true;
+            }
+        }
+    }
+}
+
 impl NonsmoothCg {
     /// Keeps the decomposition; nothing is factored before the first solve.
     pub fn new(model: &Model, dec: Decomposition, opts: NonsmoothOptions) -> Result<NonsmoothCg> {
@@ -739,7 +816,7 @@ impl NonsmoothCg {
         let mut murty = false;
         // Relative size of the last violation; none measured yet.
         let mut violation = f64::INFINITY;
-        let mut last_at_tol = false;
+        let mut schedule = InnerTolerance::new(tol);
         let mut settling = Settling::new(self.unsettled_steps);
         // Set for good once a capped step ends far from its tolerance.
         let mut cap_lifted = false;
@@ -752,15 +829,7 @@ impl NonsmoothCg {
                     "cable active set did not settle in {max_outer} outer steps"
                 )));
             }
-            // Once a set has been solved at the tolerance, the few flips
-            // left are the endgame: solve the next set at the tolerance
-            // too rather than loosely and then again to confirm it.
-            let inner_tol = if last_at_tol {
-                tol
-            } else {
-                (INNER_TOL_FACTOR * violation).clamp(tol, INNER_TOL_MAX.max(tol))
-            };
-            last_at_tol = !(inner_tol > tol);
+            let inner_tol = schedule.next(violation);
             // A set that leaves a mechanism is taken softened (a guide
             // step); the error it stands for, if the set turns out final.
             let mut failure: Option<Error> = None;
@@ -870,11 +939,7 @@ impl NonsmoothCg {
             violation = worst / scale;
             let flips = next.iter().zip(&slack).filter(|(a, b)| a != b).count();
             let settles = flips == 0 || settling.record(outer, flips);
-            // Few flips left: the set is in the active set's own tail, where
-            // loose strains only add steps (see [`ENDGAME_FLIPS`]).
-            if !soft && flips as f64 <= ENDGAME_FLIPS * nc as f64 {
-                last_at_tol = true;
-            }
+            schedule.flipped(flips, nc, soft);
             if std::env::var_os("NSDD_NS_DEBUG").is_some() {
                 eprintln!(
                     "outer {outer}: {} slack, soft {soft}, inner tol {inner_tol:.1e}, {} its (conv {}, {:?}, indicator {:.1e}), setup {setup_s:.3}s, cg {:.3}s, {} flips, violation {violation:.2e}",
@@ -1158,5 +1223,42 @@ mod tests {
         }
         // Window 0 ends at the first count.
         assert!(!Settling::new(0).record(1, 5));
+    }
+
+    /// The schedule of the 130² grid's run (101 141 cables): loose steps at
+    /// 0.03 of the violation, at most 1e-3; from a step of at most 1e-3 of
+    /// the cables on, 1e-2 of it; after at most 4 flips the tolerance,
+    /// which then stays; a settled loose set is confirmed at the tolerance.
+    #[test]
+    fn inner_tolerance_follows_the_violation_and_tightens_in_the_tail() {
+        let tol = 1e-8;
+        let close = |a: f64, b: f64| (a - b).abs() <= 1e-12 * b;
+        let mut t = InnerTolerance::new(tol);
+        assert_eq!(t.next(f64::INFINITY), INNER_TOL_MAX);
+        t.flipped(35_488, 101_141, false);
+        assert!(close(t.next(0.0197), INNER_TOL_FACTOR * 0.0197));
+        // A softened step's few flips do not start the tail.
+        t.flipped(70, 101_141, true);
+        assert!(close(t.next(0.0035), INNER_TOL_FACTOR * 0.0035));
+        t.flipped(70, 101_141, false);
+        assert!(close(t.next(0.0035), ENDGAME_TOL_FACTOR * 0.0035));
+        t.flipped(8, 101_141, false);
+        assert!(close(t.next(1.3e-3), ENDGAME_TOL_FACTOR * 1.3e-3));
+        // Never below the tolerance.
+        t.flipped(7, 101_141, false);
+        assert_eq!(t.next(1e-9), tol);
+        // At most 4 flips: the next set at the tolerance, and the ones after.
+        let mut t = InnerTolerance::new(tol);
+        t.next(f64::INFINITY);
+        t.flipped(101, 101_141, false);
+        assert!(t.next(1e-3) > tol);
+        t.flipped(4, 101_141, false);
+        assert_eq!(t.next(6e-4), tol);
+        t.flipped(9, 101_141, false);
+        assert_eq!(t.next(5e-4), tol);
+        // A loose set that settles (violation 0) is confirmed at the tolerance.
+        let mut t = InnerTolerance::new(tol);
+        t.next(f64::INFINITY);
+        assert_eq!(t.next(0.0), tol);
     }
 }
