@@ -1358,9 +1358,10 @@ impl DdSolver {
                     // those rows only (L_E = W_Iᵀ Z_I, G_E = W_Iᵀ R_I), and
                     // the n × m array of the solves is allocated only when
                     // columns are solved, then kept as `Z_E` without a copy
-                    // (fresh pages fault slowly: three such arrays per
-                    // subdomain were a third of this phase on the 30³
-                    // tower with 64 subdomains).
+                    // (fresh pages fault slowly: with three such arrays
+                    // per subdomain, their allocations and copies took as
+                    // many samples as the solves on the 30³ tower with 64
+                    // subdomains).
                     let rows = &st.iface_dofs;
                     let mut at = vec![u32::MAX; n];
                     for (i, &l) in rows.iter().enumerate() {
