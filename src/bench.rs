@@ -203,7 +203,7 @@ pub fn dd_profile(scene: &Scene, subdomains: usize, iterations: usize, method: M
     let iterations = iterations.max(2);
     // The iterations a run did: CG may stop before `k` (at a tolerance of 0
     // it stalls at round-off), and dividing by the count asked for then
-    // reported a fraction of the true cost (8.5 ms against 31 ms on the 130²
+    // reported a fraction of the true cost (8.5 ms against 24.4 ms on the 130²
     // plate with 64 subdomains and `--iterations 300`).
     let run = |dd: &mut DdSolver, k: usize| -> Result<(f64, usize)> {
         dd.set_stopping(0.0, k);
