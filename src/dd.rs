@@ -429,6 +429,11 @@ impl MacroResponses {
     pub(crate) fn col(&self, k: usize) -> &[f64] {
         &self.data[k * self.rows..(k + 1) * self.rows]
     }
+
+    /// The rows `rows` of every column (`Z_I`, the interface rows).
+    fn rows(&self, rows: &[u32]) -> Mat<f64> {
+        Mat::from_fn(rows.len(), self.ncols(), |i, j| self.col(j)[rows[i] as usize])
+    }
 }
 
 /// `K_E⁺` applied to the columns `cols` of `z` (column-major, `n` rows per
@@ -1391,6 +1396,7 @@ impl DdSolver {
                                 && b.w == wi =>
                         {
                             reused_blocks.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                            st.z_iface = st.z.rows(rows);
                             (b.l, b.g)
                         }
                         kept => {
@@ -1417,13 +1423,12 @@ impl DdSolver {
                             };
                             solve_some_columns(&mut st.op, &mut z, n, &fresh);
                             st.z = MacroResponses::new(z, n);
-                            let zi = Mat::from_fn(rows.len(), m, |i, j| st.z.col(j)[rows[i] as usize]);
+                            st.z_iface = st.z.rows(rows);
                             let kernel = st.op.kernel();
                             let ri = Mat::from_fn(rows.len(), kernel.ncols(), |i, j| kernel[(rows[i] as usize, j)]);
-                            (wi.transpose() * &zi, wi.transpose() * &ri)
+                            (wi.transpose() * &st.z_iface, wi.transpose() * &ri)
                         }
                     };
-                    st.z_iface = Mat::from_fn(rows.len(), m, |i, j| st.z.col(j)[rows[i] as usize]);
                     if retain_blocks {
                         st.coarse_kept = Some(CoarseBlocks {
                             rows: rows.clone(),
