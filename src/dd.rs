@@ -222,32 +222,34 @@ impl<'a> DdProblem<'a> {
                 let n = sd.dofs.len();
                 let mut constant = vec![0.0; n];
                 let mut cables = Vec::new();
-                let local = |d: usize| {
-                    if d == FIXED {
-                        NO_DOF
-                    } else {
-                        sd.local(d).map_or(NO_DOF, |l| l as u32)
-                    }
-                };
-                for &e in &sd.elements {
-                    let el = &model.elements[e];
-                    let dofs = model.element_dofs(e).map(local);
-                    let n = el.dir;
-                    let col = CableColumn {
-                        cable: usize::MAX,
-                        dofs,
-                        coef: [-n[0], -n[1], -n[2], n[0], n[1], n[2]],
-                        k: el.k,
-                        e0: el.e0,
+                sd.with_numbering(model.n_free, |numbering| {
+                    let local = |d: usize| {
+                        if d == FIXED {
+                            NO_DOF
+                        } else {
+                            numbering.get(d).map_or(NO_DOF, |l| l as u32)
+                        }
                     };
-                    if el.e0 != 0.0 {
-                        col.add_to(-el.k * el.e0, &mut constant);
+                    for &e in &sd.elements {
+                        let el = &model.elements[e];
+                        let dofs = model.element_dofs(e).map(local);
+                        let n = el.dir;
+                        let col = CableColumn {
+                            cable: usize::MAX,
+                            dofs,
+                            coef: [-n[0], -n[1], -n[2], n[0], n[1], n[2]],
+                            k: el.k,
+                            e0: el.e0,
+                        };
+                        if el.e0 != 0.0 {
+                            col.add_to(-el.k * el.e0, &mut constant);
+                        }
+                        if el.unilateral {
+                            let cable = model.cables.binary_search(&e).expect("unilateral element is a cable");
+                            cables.push(CableColumn { cable, ..col });
+                        }
                     }
-                    if el.unilateral {
-                        let cable = model.cables.binary_search(&e).expect("unilateral element is a cable");
-                        cables.push(CableColumn { cable, ..col });
-                    }
-                }
+                });
                 SubdomainLoad { constant, cables }
             })
             .collect();
@@ -1806,10 +1808,12 @@ impl DdSolver {
         let held = &dec.subdomains[self.owned()];
         if self.owned().len() == dec.len() {
             for (sd, st) in held.iter().zip(&self.op.subs) {
-                for &e in &sd.elements {
-                    let e = ids.map_or(e, |ids| ids[e]);
-                    out[e] = model.elongation_by(e, |d| sd.local(d).map_or(0.0, |l| st.v[l]));
-                }
+                sd.with_numbering(model.n_free, |local| {
+                    for &e in &sd.elements {
+                        let e = ids.map_or(e, |ids| ids[e]);
+                        out[e] = model.elongation_by(e, |d| local.get(d).map_or(0.0, |l| st.v[l]));
+                    }
+                });
             }
             return;
         }
@@ -1818,9 +1822,11 @@ impl DdSolver {
         let mut all = vec![0.0; dec.partition.part_of.len()];
         self.op.comm.assemble(&mut all, |s, o| {
             let (sd, st) = (&held[s], &self.op.subs[s]);
-            for &e in &sd.elements {
-                o[e] = model.elongation_by(ids.map_or(e, |ids| ids[e]), |d| sd.local(d).map_or(0.0, |l| st.v[l]));
-            }
+            sd.with_numbering(model.n_free, |local| {
+                for &e in &sd.elements {
+                    o[e] = model.elongation_by(ids.map_or(e, |ids| ids[e]), |d| local.get(d).map_or(0.0, |l| st.v[l]));
+                }
+            });
         });
         for sd in &dec.subdomains {
             for &e in &sd.elements {

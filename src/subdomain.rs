@@ -218,7 +218,9 @@ impl SubdomainOperator {
         ordering: OrderingChoice,
     ) -> Result<SubdomainOperator> {
         let n = sd.dofs.len();
-        let trip = model.stiffness_triplets(&sd.elements, |d| sd.local(d));
+        let trip = sd.with_numbering(model.n_free, |local| {
+            model.stiffness_triplets(&sd.elements, |d| local.get(d))
+        });
         let stiffness = lower_csc(n, &trip).map_err(|e| Error::Numerical(format!("subdomain {id}: {e:?}")))?;
         let name = |l: usize| {
             let (node, c) = model.dof_owner(sd.dofs[l]);

@@ -957,3 +957,39 @@ fn negative_energy_is_refused_as_indefinite_not_taken_for_a_mechanism() {
         }
     }
 }
+
+/// `with_numbering`'s table gives `local` for every global dof (inside,
+/// outside, out of range), is cleared for the next subdomain on the thread,
+/// and stays right when used inside itself or after an unwinding closure.
+#[test]
+fn numbering_table_agrees_with_the_binary_search() {
+    let model = grid_model(12);
+    let dec = Decomposition::new(&model, Partition::bisection(&model, 4).unwrap());
+    let n = model.n_free;
+    let check = |sd: &nsdd::decomposition::SubdomainDofs, s: usize| {
+        sd.with_numbering(n, |table| {
+            for d in 0..n + 3 {
+                assert_eq!(table.get(d), sd.local(d), "subdomain {s}, global dof {d}");
+            }
+        })
+    };
+    for (s, sd) in dec.subdomains.iter().enumerate() {
+        check(sd, s);
+    }
+    // Nested: the inner call cannot take the thread's table and builds its own.
+    let (a, b) = (&dec.subdomains[0], &dec.subdomains[1]);
+    a.with_numbering(n, |ta| {
+        check(b, 1);
+        for d in 0..n {
+            assert_eq!(ta.get(d), a.local(d));
+        }
+    });
+    // A closure that unwinds leaves the table clean for the next subdomain.
+    let unwound = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+        a.with_numbering(n, |_| panic!("unwinding on purpose"));
+    }));
+    assert!(unwound.is_err());
+    for (s, sd) in dec.subdomains.iter().enumerate() {
+        check(sd, s);
+    }
+}
