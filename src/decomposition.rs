@@ -72,6 +72,11 @@ impl SubdomainDofs {
     /// thread (4 bytes per global dof) and cleared on the way out, so the
     /// subdomains of a set-up share one per thread.
     pub fn with_numbering<R>(&self, n_global: usize, f: impl FnOnce(LocalNumbering<'_>) -> R) -> R {
+        let fill = |table: &mut [u32]| {
+            for (l, &d) in self.dofs.iter().enumerate() {
+                table[d] = l as u32;
+            }
+        };
         NUMBERING.with(|cell| match cell.try_borrow_mut() {
             Ok(table) => {
                 // Cleared by `drop`, also when `f` unwinds.
@@ -82,9 +87,7 @@ impl SubdomainDofs {
                 if guard.table.len() < n_global {
                     guard.table.resize(n_global, NOT_HERE);
                 }
-                for (l, &d) in self.dofs.iter().enumerate() {
-                    guard.table[d] = l as u32;
-                }
+                fill(&mut guard.table);
                 f(LocalNumbering {
                     table: &guard.table[..n_global],
                 })
@@ -92,9 +95,7 @@ impl SubdomainDofs {
             // Only if `f` itself asked for a table on this thread.
             Err(_) => {
                 let mut table = vec![NOT_HERE; n_global];
-                for (l, &d) in self.dofs.iter().enumerate() {
-                    table[d] = l as u32;
-                }
+                fill(&mut table);
                 f(LocalNumbering { table: &table })
             }
         })
