@@ -265,6 +265,9 @@ pub struct SubdomainInfo {
     /// Dimension of the kernel of `K_E` (0 for a regular subdomain); None
     /// when the subdomain could not be factored (see `error`).
     pub kernel_dim: Option<usize>,
+    /// Of those, the modes that are not rigid motions of the subdomain:
+    /// local mechanisms (`nsdd::subdomain::local_mechanisms`).
+    pub mechanisms: Option<usize>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub error: Option<String>,
 }
@@ -293,15 +296,21 @@ pub fn partition_report(scene: &Scene, subdomains: usize) -> Result<PartitionRep
         .iter()
         .enumerate()
         .map(|(id, sd)| {
-            let (kernel_dim, error) = match SubdomainOperator::new(id, &model, sd, 1, scene.solver.ordering) {
-                Ok(op) => (Some(op.kernel_dim()), None),
-                Err(e) => (None, Some(e.to_string())),
+            let (kernel_dim, mechanisms, error) = match SubdomainOperator::new(id, &model, sd, 1, scene.solver.ordering)
+            {
+                Ok(op) => (
+                    Some(op.kernel_dim()),
+                    Some(nsdd::subdomain::local_mechanisms(&op, &model, sd)),
+                    None,
+                ),
+                Err(e) => (None, None, Some(e.to_string())),
             };
             SubdomainInfo {
                 id,
                 elements: sd.elements.len(),
                 dofs: sd.dofs.len(),
                 kernel_dim,
+                mechanisms,
                 error,
             }
         })
@@ -339,14 +348,24 @@ impl PartitionReport {
             q.cross_points, q.max_node_multiplicity
         );
         let _ = writeln!(s, "element imbalance   {:.3} (max / mean)", q.element_imbalance);
-        let _ = writeln!(s, "subdomain  elements  dofs  kernel");
+        let _ = writeln!(s, "subdomain  elements  dofs  kernel  mechanisms");
         for i in &self.subdomains {
             let k = match (&i.kernel_dim, &i.error) {
-                (Some(k), _) => k.to_string(),
+                (Some(k), _) => format!("{k:>6}  {:>10}", i.mechanisms.unwrap_or(0)),
                 (None, Some(e)) => format!("error: {e}"),
                 (None, None) => "-".into(),
             };
             let _ = writeln!(s, "{:>9}  {:>8}  {:>4}  {}", i.id, i.elements, i.dofs, k);
+        }
+        let mech: Vec<usize> = self.subdomains.iter().map(|i| i.mechanisms.unwrap_or(0)).collect();
+        let with = mech.iter().filter(|&&m| m > 0).count();
+        if with > 0 {
+            let _ = writeln!(
+                s,
+                "local mechanisms    {} in {with} subdomain{} (kernel modes that are not rigid motions, each a coarse unknown)",
+                mech.iter().sum::<usize>(),
+                if with > 1 { "s" } else { "" }
+            );
         }
         if self.singular.is_empty() {
             let _ = writeln!(s, "singular subdomains none");

@@ -557,9 +557,17 @@ fn partition_reports_quality_and_kernels() {
     assert!(v["quality"]["interfaces"].as_u64().unwrap() > 0);
     assert_eq!(v["subdomains"].as_array().unwrap().len(), 4);
     assert!(!v["singular"].as_array().unwrap().is_empty());
+    // Every factored subdomain reports its local mechanisms, at most its kernel.
+    for sd in v["subdomains"].as_array().unwrap() {
+        assert!(
+            sd["mechanisms"].as_u64().unwrap() <= sd["kernel_dim"].as_u64().unwrap(),
+            "{sd}"
+        );
+    }
     let out = nsdd(&["partition", s(&grid)]);
     ok(&out);
     assert!(text(&out.stdout).contains("singular subdomains"));
+    assert!(text(&out.stdout).contains("kernel  mechanisms"));
 }
 
 fn csv_rows(p: &Path) -> (String, Vec<Vec<String>>) {

@@ -993,3 +993,35 @@ fn numbering_table_agrees_with_the_binary_search() {
         check(sd, s);
     }
 }
+
+/// `local_mechanisms` counts the kernel modes that are not rigid motions:
+/// on a 3D tower every floating subdomain has exactly six rigid motions,
+/// so there it must be the kernel dimension less six; elsewhere at most
+/// the kernel dimension. This 10³ tower cut in 16 has some (49 in
+/// session 48: floppy sheets of nodes at the cuts; BENCHMARKS.md).
+#[test]
+fn local_mechanisms_are_the_kernel_modes_beyond_the_rigid_motions() {
+    use nsdd::subdomain::{local_mechanisms, SubdomainOperator};
+    let scene = nsdd::generate::tower(&nsdd::generate::TowerParams {
+        nx: 10,
+        ny: 10,
+        nz: 10,
+        ea_cable: 1e4,
+        unilateral: false,
+        ..Default::default()
+    });
+    let model = Model::from_scene(&scene).unwrap();
+    let dec = Decomposition::new(&model, Partition::bisection(&model, 16).unwrap());
+    let mut total = 0;
+    for (i, sd) in dec.subdomains.iter().enumerate() {
+        let op = SubdomainOperator::new(i, &model, sd, 1, nsdd::settings::OrderingChoice::Auto).unwrap();
+        let (k, m) = (op.kernel_dim(), local_mechanisms(&op, &model, sd));
+        if sd.translates_freely(&model) {
+            assert_eq!(m + 6, k, "floating subdomain {i}");
+        } else {
+            assert!(m <= k, "subdomain {i}: {m} mechanisms, kernel {k}");
+        }
+        total += m;
+    }
+    assert!(total > 0, "no local mechanism found");
+}
