@@ -300,7 +300,7 @@ pub fn partition_report(scene: &Scene, subdomains: usize) -> Result<PartitionRep
             {
                 Ok(op) => (
                     Some(op.kernel_dim()),
-                    Some(nsdd::subdomain::local_mechanisms(&op, &model, sd)),
+                    nsdd::subdomain::local_mechanisms(&op, &model, sd),
                     None,
                 ),
                 Err(e) => (None, None, Some(e.to_string())),
@@ -351,7 +351,7 @@ impl PartitionReport {
         let _ = writeln!(s, "subdomain  elements  dofs  kernel  mechanisms");
         for i in &self.subdomains {
             let k = match (&i.kernel_dim, &i.error) {
-                (Some(k), _) => format!("{k:>6}  {:>10}", i.mechanisms.unwrap_or(0)),
+                (Some(k), _) => format!("{k:>6}  {:>10}", i.mechanisms.map_or("-".into(), |m| m.to_string())),
                 (None, Some(e)) => format!("error: {e}"),
                 (None, None) => "-".into(),
             };

@@ -91,9 +91,6 @@ const RIGID_TOL: f64 = 1e-13;
 /// A computed kernel basis whose residual is below this is left as it is.
 const ROUNDOFF_KERNEL: f64 = 1e-14;
 
-/// The rigid motions (3 translations, 3 rotations about the centroid) of
-/// the subdomain's nodes on its local dofs, orthonormalised (rank revealed:
-/// fewer columns where the nodes are collinear or components fixed).
 /// Kernel modes of `op` (the operator of subdomain `sd`) that are not
 /// rigid motions: local mechanisms, parts of the subdomain that move
 /// without straining it while the rest stays. Each is a coarse unknown
@@ -101,23 +98,27 @@ const ROUNDOFF_KERNEL: f64 = 1e-14;
 /// sheets of nodes where a cut meets a layer of a lattice: BENCHMARKS.md,
 /// session 48). Counted as the kernel directions at least 45° away from
 /// the span of the rigid motions (orthonormal bases of both; the computed
-/// kernel is accurate to far better than that).
-pub fn local_mechanisms(op: &SubdomainOperator, model: &Model, sd: &SubdomainDofs) -> usize {
+/// kernel is accurate to far better than that). `None` where the SVD
+/// fails.
+pub fn local_mechanisms(op: &SubdomainOperator, model: &Model, sd: &SubdomainDofs) -> Option<usize> {
     if op.kernel_dim() == 0 {
-        return 0;
+        return Some(0);
     }
     let k = orthonormal_columns(op.kernel(), 1e-10);
     let q = rigid_motions(model, sd);
     let off = &k - &q * (q.transpose() * &k);
-    let Ok(svd) = off.thin_svd() else {
-        return 0;
-    };
+    let svd = off.thin_svd().ok()?;
     let s = svd.S().column_vector();
-    (0..s.nrows())
-        .filter(|&i| s[i] > std::f64::consts::FRAC_1_SQRT_2)
-        .count()
+    Some(
+        (0..s.nrows())
+            .filter(|&i| s[i] > std::f64::consts::FRAC_1_SQRT_2)
+            .count(),
+    )
 }
 
+/// The rigid motions (3 translations, 3 rotations about the centroid) of
+/// the subdomain's nodes on its local dofs, orthonormalised (rank revealed:
+/// fewer columns where the nodes are collinear or components fixed).
 fn rigid_motions(model: &Model, sd: &SubdomainDofs) -> Mat<f64> {
     let n = sd.dofs.len();
     let owners: Vec<(usize, usize)> = sd.dofs.iter().map(|&d| model.dof_owner(d)).collect();
