@@ -1123,8 +1123,20 @@ impl KernelCoupling {
 /// inner solve takes two solves with the factor.
 pub const MAX_KERNEL_COLUMN_VALUES: usize = 1 << 24;
 
-/// Rows per dense block of the product `Bᵀ B` ([`KernelColumns::gram`]).
+/// Rows per dense block of the product `Bᵀ B` ([`KernelColumns::gram`]):
+/// at least this many...
 const GRAM_ROWS: usize = 32;
+
+/// ...and more while the block has fewer than one row per this many of its
+/// columns, up to [`GRAM_MAX_ROWS`]. Each block's product is an update of
+/// an `m × m` block by `g` rows; near the root, where a row holds nearly
+/// all of the 1 700-1 900 kernel columns of the nonsmooth 30³ tower cut in
+/// 64, 32 rows made it a rank-32 update whose time went to moving the
+/// `m × m` block, not to the multiply-adds.
+const GRAM_COLUMNS_PER_ROW: usize = 8;
+
+/// Largest row count of a dense block of `Bᵀ B`.
+const GRAM_MAX_ROWS: usize = 512;
 
 /// `B = L⁻¹ P G` by columns, rows in the factor's (permuted) order, exact
 /// zeros dropped. Where `L_γ = Pᵀ L Lᵀ P`, `S = Gᵀ L_γ⁻¹ G = Bᵀ B`: half
@@ -1217,14 +1229,23 @@ impl KernelColumns {
             let mut prod = Mat::<f64>::zeros(0, 0);
             let mut r0 = rows.start;
             while r0 < rows.end {
-                let r1 = (r0 + GRAM_ROWS).min(rows.end);
+                // Rows join the block up to GRAM_ROWS, and on while the
+                // block has fewer than 1/GRAM_COLUMNS_PER_ROW of its
+                // columns' count in rows (up to GRAM_MAX_ROWS).
                 cols.clear();
-                for &(c, _) in &entries[rptr[r0]..rptr[r1]] {
-                    let c = c as usize;
-                    if slot[c] == usize::MAX {
-                        slot[c] = cols.len();
-                        cols.push(c);
+                let mut r1 = r0;
+                while r1 < rows.end
+                    && (r1 - r0 < GRAM_ROWS
+                        || ((r1 - r0) * GRAM_COLUMNS_PER_ROW < cols.len() && r1 - r0 < GRAM_MAX_ROWS))
+                {
+                    for &(c, _) in &entries[rptr[r1]..rptr[r1 + 1]] {
+                        let c = c as usize;
+                        if slot[c] == usize::MAX {
+                            slot[c] = cols.len();
+                            cols.push(c);
+                        }
                     }
+                    r1 += 1;
                 }
                 let (g, m) = (r1 - r0, cols.len());
                 if m > 0 {
@@ -1266,7 +1287,21 @@ impl KernelColumns {
             }
             s
         };
-        let mid = nrows / 2;
+        // The halves split the work (a row with `c` entries costs `c²`),
+        // not the rows: the rows near the factor's root hold nearly every
+        // column, and split by rows the second half did 95-97 % of the work
+        // on the nonsmooth 30³ tower cut in 64 (0.02 against 0.4 s).
+        let cost = |r: usize| ((rptr[r + 1] - rptr[r]) as f64).powi(2);
+        let total: f64 = (0..nrows).map(cost).sum();
+        let mut mid = nrows;
+        let mut acc = 0.0;
+        for r in 0..nrows {
+            acc += cost(r);
+            if acc >= 0.5 * total {
+                mid = r + 1;
+                break;
+            }
+        }
         let (mut lo, hi) = rayon::join(|| gram_of(0..mid), || gram_of(mid..nrows));
         lo += &hi;
         for j in 0..na {
@@ -1610,6 +1645,75 @@ mod tests {
     /// from full solves, and the kept columns' inner-solve route
     /// (`Pᵀ L⁻ᵀ (L⁻¹ P c + B α)`) against `L_γ⁻¹ (c + G α)`: on a 2D
     /// Laplacian with local kernel columns (70 of them: both halves of the
+    /// `S = Bᵀ B` where the rows near the root hold hundreds of columns (its
+    /// blocks grow past [`GRAM_ROWS`] rows there, and its two halves split
+    /// the work, not the rows): the Schur complement of full solves, with
+    /// the same bits on one thread as on two.
+    #[test]
+    fn kernel_columns_gram_with_dense_rows_near_the_root() {
+        let m = 24;
+        let nf = m * m;
+        let mut t = Vec::new();
+        for i in 0..m {
+            for j in 0..m {
+                let k = i * m + j;
+                t.push((k, k, 4.2));
+                if i + 1 < m {
+                    t.push((k + m, k, -1.0));
+                }
+                if j + 1 < m {
+                    t.push((k + 1, k, -1.0));
+                }
+            }
+        }
+        let lower = lower_csc(nf, &t).unwrap();
+        let mut factor = SparseCholesky::factor(&lower, SCHUR_BATCH).unwrap();
+        let na = 400;
+        let cols: Vec<Vec<(usize, f64)>> = (0..na)
+            .map(|q| {
+                let r0 = (q * 131) % (nf - 2);
+                (r0..r0 + 2)
+                    .map(|r| (r, 1.0 + ((q * 7 + r) % 10) as f64 / 10.0))
+                    .collect()
+            })
+            .collect();
+        let g = KernelCoupling::from_columns(nf, cols);
+        let b = KernelColumns::forward(&mut factor, &g, usize::MAX).unwrap();
+        let widest = {
+            let mut per_row = vec![0usize; nf];
+            for j in 0..na {
+                for &(r, n) in &b.runs[b.ptr[j]..b.ptr[j + 1]] {
+                    per_row[r as usize..(r + n) as usize].iter_mut().for_each(|c| *c += 1);
+                }
+            }
+            per_row.into_iter().max().unwrap()
+        };
+        assert!(
+            widest > GRAM_ROWS * GRAM_COLUMNS_PER_ROW,
+            "rows near the root hold {widest} columns"
+        );
+        let in_pool = |threads: usize| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap()
+                .install(|| b.gram(na))
+        };
+        let (s1, s2) = (in_pool(1), in_pool(2));
+        let s_ref = schur_by_solves(&mut factor, &g);
+        let scale = (0..na).map(|i| s_ref[(i, i)]).fold(0.0, f64::max);
+        for i in 0..na {
+            for j in 0..na {
+                assert_eq!(
+                    s1[(i, j)].to_bits(),
+                    s2[(i, j)].to_bits(),
+                    "S[{i},{j}] on 1 and 2 threads"
+                );
+                assert!((s1[(i, j)] - s_ref[(i, j)]).abs() <= 1e-13 * scale, "S[{i},{j}]");
+            }
+        }
+    }
+
     /// batched forward substitutions), whose `B` is sparse. With too small
     /// a cap the columns are not kept.
     #[test]
