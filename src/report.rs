@@ -357,14 +357,27 @@ impl PartitionReport {
             };
             let _ = writeln!(s, "{:>9}  {:>8}  {:>4}  {}", i.id, i.elements, i.dofs, k);
         }
-        let mech: Vec<usize> = self.subdomains.iter().map(|i| i.mechanisms.unwrap_or(0)).collect();
+        let mech: Vec<usize> = self.subdomains.iter().filter_map(|i| i.mechanisms).collect();
         let with = mech.iter().filter(|&&m| m > 0).count();
-        if with > 0 {
+        // A factored subdomain whose kernel could not be split from its
+        // rigid motions (an SVD failure) is named, not counted as zero.
+        let uncounted = self
+            .subdomains
+            .iter()
+            .filter(|i| i.kernel_dim.is_some() && i.mechanisms.is_none())
+            .count();
+        let plural = |n: usize| if n > 1 { "s" } else { "" };
+        if with > 0 || uncounted > 0 {
             let _ = writeln!(
                 s,
-                "local mechanisms    {} in {with} subdomain{} (kernel modes that are not rigid motions, each a coarse unknown)",
+                "local mechanisms    {} in {with} subdomain{} (kernel modes that are not rigid motions, each a coarse unknown){}",
                 mech.iter().sum::<usize>(),
-                if with > 1 { "s" } else { "" }
+                plural(with),
+                if uncounted > 0 {
+                    format!("; not counted in {uncounted} subdomain{} (\"-\" above)", plural(uncounted))
+                } else {
+                    String::new()
+                }
             );
         }
         if self.singular.is_empty() {
@@ -1590,6 +1603,40 @@ pub fn scaling_svg(report: &ScalingReport) -> Result<String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The partition text sums the local mechanisms it could count and
+    /// names the subdomains it could not, rather than counting them as 0.
+    #[test]
+    fn partition_text_names_uncounted_mechanisms() {
+        let params = nsdd::generate::TowerParams {
+            nx: 6,
+            ny: 6,
+            nz: 6,
+            ea_cable: 1e4,
+            unilateral: false,
+            ..Default::default()
+        };
+        let scene = nsdd::generate::tower(&params);
+        let mut report = partition_report(&scene, 16).unwrap();
+        let counted: usize = report.subdomains.iter().filter_map(|i| i.mechanisms).sum();
+        assert!(counted > 0, "a 6³ tower cut in 16 has local mechanisms");
+        let text = report.text();
+        assert!(text.contains(&format!("local mechanisms    {counted} in ")), "{text}");
+        assert!(!text.contains("not counted"), "{text}");
+        // One subdomain whose count failed.
+        let lost = report
+            .subdomains
+            .iter()
+            .position(|i| i.mechanisms.is_some_and(|m| m > 0))
+            .unwrap();
+        let m = report.subdomains[lost].mechanisms.take().unwrap();
+        let text = report.text();
+        assert!(
+            text.contains(&format!("local mechanisms    {} in ", counted - m)),
+            "{text}"
+        );
+        assert!(text.contains("not counted in 1 subdomain"), "{text}");
+    }
 
     #[test]
     fn samples_are_geometric_and_end_at_n() {
