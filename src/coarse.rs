@@ -1641,23 +1641,15 @@ mod tests {
         assert_eq!(soft.ncols(), base.ncols());
     }
 
-    /// `S = Bᵀ B` from the forward-substituted kernel columns against `S`
-    /// from full solves, and the kept columns' inner-solve route
-    /// (`Pᵀ L⁻ᵀ (L⁻¹ P c + B α)`) against `L_γ⁻¹ (c + G α)`: on a 2D
-    /// Laplacian with local kernel columns (70 of them: both halves of the
-    /// `S = Bᵀ B` where the rows near the root hold hundreds of columns (its
-    /// blocks grow past [`GRAM_ROWS`] rows there, and its two halves split
-    /// the work, not the rows): the Schur complement of full solves, with
-    /// the same bits on one thread as on two.
-    #[test]
-    fn kernel_columns_gram_with_dense_rows_near_the_root() {
-        let m = 24;
+    /// The size `m²` and the factor of a shifted 5-point Laplacian on an
+    /// `m × m` grid (`diag` on the diagonal, -1 to each neighbour).
+    fn grid_laplacian_factor(m: usize, diag: f64) -> (usize, SparseCholesky) {
         let nf = m * m;
         let mut t = Vec::new();
         for i in 0..m {
             for j in 0..m {
                 let k = i * m + j;
-                t.push((k, k, 4.2));
+                t.push((k, k, diag));
                 if i + 1 < m {
                     t.push((k + m, k, -1.0));
                 }
@@ -1667,7 +1659,16 @@ mod tests {
             }
         }
         let lower = lower_csc(nf, &t).unwrap();
-        let mut factor = SparseCholesky::factor(&lower, SCHUR_BATCH).unwrap();
+        (nf, SparseCholesky::factor(&lower, SCHUR_BATCH).unwrap())
+    }
+
+    /// `S = Bᵀ B` where the rows near the root hold hundreds of columns (its
+    /// blocks grow past [`GRAM_ROWS`] rows there, and its two halves split
+    /// the work, not the rows): the Schur complement of full solves, with
+    /// the same bits on one thread as on two.
+    #[test]
+    fn kernel_columns_gram_with_dense_rows_near_the_root() {
+        let (nf, mut factor) = grid_laplacian_factor(24, 4.2);
         let na = 400;
         let cols: Vec<Vec<(usize, f64)>> = (0..na)
             .map(|q| {
@@ -1714,27 +1715,15 @@ mod tests {
         }
     }
 
+    /// `S = Bᵀ B` from the forward-substituted kernel columns against `S`
+    /// from full solves, and the kept columns' inner-solve route
+    /// (`Pᵀ L⁻ᵀ (L⁻¹ P c + B α)`) against `L_γ⁻¹ (c + G α)`: on a 2D
+    /// Laplacian with local kernel columns (70 of them: both halves of the
     /// batched forward substitutions), whose `B` is sparse. With too small
     /// a cap the columns are not kept.
     #[test]
     fn kernel_columns_give_the_schur_complement_of_full_solves() {
-        let m = 15;
-        let nf = m * m;
-        let mut t = Vec::new();
-        for i in 0..m {
-            for j in 0..m {
-                let k = i * m + j;
-                t.push((k, k, 4.1));
-                if i + 1 < m {
-                    t.push((k + m, k, -1.0));
-                }
-                if j + 1 < m {
-                    t.push((k + 1, k, -1.0));
-                }
-            }
-        }
-        let lower = lower_csc(nf, &t).unwrap();
-        let mut factor = SparseCholesky::factor(&lower, SCHUR_BATCH).unwrap();
+        let (nf, mut factor) = grid_laplacian_factor(15, 4.1);
         let na = 70;
         let cols: Vec<Vec<(usize, f64)>> = (0..na)
             .map(|q| {
