@@ -25,7 +25,7 @@ use crate::decomposition::Decomposition;
 use crate::error::{Error, Result};
 use crate::factor::OrderingKind;
 use crate::kernels::{self, Run};
-use crate::method::cg::CgWorkspace;
+use crate::method::cg::{BlockSource, CgWorkspace, DeluxeLayout, Preconditioning};
 pub use crate::method::stopping::{stalled, stopping_factor, CONTRACTION_CAP, CONTRACTION_WINDOW};
 use crate::method::{on_workers, Progress};
 use crate::model::{Model, FIXED};
@@ -861,7 +861,7 @@ impl DdSolver {
     fn from_problem_named(
         problem: DdProblem<'_>,
         opts: DdOptions,
-        name_dof: &dyn Fn(usize) -> String,
+        name_dof: &(dyn Fn(usize) -> String + Sync),
         pooled: Option<(PooledBlocks, PooledCoarse)>,
     ) -> Result<DdSolver> {
         let t0 = Instant::now();
@@ -1346,8 +1346,32 @@ impl DdSolver {
         }
         drop(diags);
 
+        // cg's preconditioner: which interior factors a pooled set-up hands
+        // over stay (where the interface is the same; they serve the
+        // Dirichlet preconditioner only, the lumped deluxe blocks being of
+        // `K_E`), and where its deluxe blocks sit. The interiors and blocks
+        // themselves are computed beside the coarse problem below.
+        let dof_maps: Vec<Vec<usize>> = dec.subdomains.iter().map(|s| s.dofs.clone()).collect();
+        let multiplicity: Vec<Vec<u32>> = dec.subdomains.iter().map(|s| s.multiplicity.clone()).collect();
+        let dirichlet = opts.krylov && opts.preconditioner == Preconditioner::Dirichlet;
+        let mut interiors_reused = 0;
+        let layout = opts.krylov.then(|| {
+            for st in subs.iter_mut() {
+                let n = st.op.n();
+                if !(dirichlet && st.interior.as_ref().is_some_and(|ip| ip.fits(n, &st.iface_dofs))) {
+                    st.interior = None;
+                    if let Some(b) = st.face_blocks.as_mut() {
+                        b.clear();
+                    }
+                }
+            }
+            interiors_reused = subs.iter().filter(|st| st.interior.is_some()).count();
+            DeluxeLayout::new(&ifaces, &dof_maps, &multiplicity, owned.clone(), opts.interface_scaling)
+        });
+
         // Coarse operator from one batched multi-RHS solve per subdomain.
         let mut coarse = None;
+        let mut coarse_parts = None;
         let reused_blocks = std::sync::atomic::AtomicUsize::new(0);
         let reused_columns = std::sync::atomic::AtomicUsize::new(0);
         if use_coarse {
@@ -1462,26 +1486,65 @@ impl DdSolver {
             for (s, p) in parts.iter().enumerate() {
                 owner[p.alpha_off..p.alpha_off + p.g.ncols()].fill(s);
             }
-            let describe = |alpha: &[f64]| {
-                // The subdomains held here (rank 0's message is the one shown).
-                let modes: Vec<_> = subs
-                    .iter()
-                    .zip(&dec.subdomains[owned.clone()])
-                    .map(|(st, sd)| {
-                        (
-                            st.op.kernel(),
-                            &sd.dofs[..],
-                            &alpha[st.alpha_off..st.alpha_off + st.alpha.len()],
-                        )
-                    })
-                    .collect();
-                largest_motion(&modes)
-                    .map(|d| format!(" (largest motion at {})", name_dof(d)))
-                    .unwrap_or_default()
-            };
-            coarse = Some(seam.agree(CoarseProblem::new_described(
-                n_macro, n_alpha, &parts, &owner, &describe,
-            ))?);
+            coarse_parts = Some((parts, owner, n_alpha));
+        }
+        // The coarse problem's factorizations have serial stretches; cg's
+        // interior factors and deluxe blocks (the subdomains' own work, no
+        // communication) fill them. The operators are only read from here
+        // on: the coarse problem reads their kernels (for its message), the
+        // interiors are factored from them.
+        let mut kernels = Vec::with_capacity(subs.len());
+        let mut sources = Vec::with_capacity(subs.len());
+        for st in subs.iter_mut() {
+            let SubState {
+                op,
+                ifaces: sides,
+                iface_dofs,
+                interior,
+                face_blocks,
+                alpha_off,
+                alpha,
+                ..
+            } = st;
+            let op: &SubdomainOperator = op;
+            kernels.push((op.kernel(), *alpha_off, alpha.len()));
+            sources.push(BlockSource {
+                op,
+                ifaces: sides,
+                iface_dofs,
+                interior,
+                face_blocks,
+            });
+        }
+        let describe = |alpha: &[f64]| {
+            // The subdomains held here (rank 0's message is the one shown).
+            let modes: Vec<_> = kernels
+                .iter()
+                .zip(&dec.subdomains[owned.clone()])
+                .map(|(&(kernel, off, r), sd)| (kernel, &sd.dofs[..], &alpha[off..off + r]))
+                .collect();
+            largest_motion(&modes)
+                .map(|d| format!(" (largest motion at {})", name_dof(d)))
+                .unwrap_or_default()
+        };
+        let build_coarse = || {
+            coarse_parts.as_ref().map(|(parts, owner, n_alpha)| {
+                let t = Instant::now();
+                let built = CoarseProblem::new_described(n_macro, *n_alpha, parts, owner, &describe);
+                (built, t.elapsed().as_secs_f64())
+            })
+        };
+        let prepare = || match &layout {
+            Some(layout) => Preconditioning::prepare(sources, &ifaces, layout, opts.interface_scaling, dirichlet),
+            None => Preconditioning::default(),
+        };
+        let coarse_start = t_coarse.elapsed().as_secs_f64();
+        let (built, prepared) = rayon::join(build_coarse, prepare);
+        drop((kernels, coarse_parts));
+        let mut coarse_own_s = coarse_start;
+        if let Some((built, s)) = built {
+            coarse_own_s += s;
+            coarse = Some(seam.agree(built)?);
         }
 
         let nd = |k: OrderingKind| (k == OrderingKind::NestedDissection) as usize as f64;
@@ -1520,11 +1583,7 @@ impl DdSolver {
             coarse_blocks_reused: reused_blocks.into_inner(),
             coarse_columns_reused: reused_columns.into_inner(),
             near_blocks: 0,
-            coarse_s: if use_coarse {
-                t_coarse.elapsed().as_secs_f64() - adaptive_s
-            } else {
-                0.0
-            },
+            coarse_s: if use_coarse { coarse_own_s - adaptive_s } else { 0.0 },
             search_direction_s: 0.0,
             scaling_s: 0.0,
         };
@@ -1545,41 +1604,27 @@ impl DdSolver {
             opts,
             n_free,
             n_cables,
-            dof_maps: dec.subdomains.iter().map(|s| s.dofs.clone()).collect(),
-            multiplicity: dec.subdomains.iter().map(|s| s.multiplicity.clone()).collect(),
+            dof_maps,
+            multiplicity,
             stats,
             cg: None,
             certify: true,
             scale_floors: (0.0, 0.0),
         };
-        if solver.opts.krylov {
+        if let Some(layout) = layout {
             solver.cg = Some(CgWorkspace::new(
                 solver.op.interface_sizes(),
                 solver.op.subs.iter().map(|s| s.v.len()),
             ));
-            // A taken-over interior factor stays where the interface is the
-            // same, and serves the Dirichlet preconditioner only (the lumped
-            // deluxe blocks are of `K_E`); the face blocks go with it.
-            let dirichlet = solver.opts.preconditioner == Preconditioner::Dirichlet;
-            for st in solver.op.subs.iter_mut() {
-                let n = st.op.n();
-                if !(dirichlet && st.interior.as_ref().is_some_and(|ip| ip.fits(n, &st.iface_dofs))) {
-                    st.interior = None;
-                    if let Some(b) = st.face_blocks.as_mut() {
-                        b.clear();
-                    }
-                }
-            }
+            let Preconditioning {
+                interiors,
+                interior_s,
+                blocks,
+                blocks_s,
+            } = prepared;
             if dirichlet {
-                let t = Instant::now();
-                solver.stats.interiors_reused = solver.op.subs.iter().filter(|st| st.interior.is_some()).count();
-                let r = solver.op.subs.par_iter_mut().try_for_each(|st| -> Result<()> {
-                    if st.interior.is_none() {
-                        st.interior = Some(InteriorProblem::new(&st.op, &st.iface_dofs)?);
-                    }
-                    Ok(())
-                });
-                solver.op.comm.agree(r)?;
+                solver.stats.interiors_reused = interiors_reused;
+                solver.op.comm.agree(interiors)?;
                 let interiors: Vec<_> = solver.op.subs.iter().filter_map(|st| st.interior.as_ref()).collect();
                 let sizes = solver.op.comm.gather(&[
                     interiors.iter().map(|ip| ip.nnz_l() as f64).sum::<f64>(),
@@ -1593,17 +1638,18 @@ impl DdSolver {
                 solver.stats.interior_nnz_l = total(0);
                 solver.stats.factors += total(1);
                 solver.stats.nested_dissection_factors += total(2);
-                solver.stats.interior_s = t.elapsed().as_secs_f64();
+                solver.stats.interior_s = interior_s;
             }
-            // After the interior problems: the deluxe blocks apply them.
+            // The weights and every interface's deluxe blocks from the
+            // subdomains' blocks.
             let t = Instant::now();
-            solver.set_interface_scaling(solver.opts.interface_scaling);
+            solver.finish_interface_scaling(solver.opts.interface_scaling, layout, blocks);
             if !retain_blocks {
                 for st in solver.op.subs.iter_mut() {
                     st.face_blocks = None;
                 }
             }
-            solver.stats.scaling_s = t.elapsed().as_secs_f64();
+            solver.stats.scaling_s = blocks_s + t.elapsed().as_secs_f64();
         }
         let t_d = Instant::now();
         solver.d = match solver.opts.search_direction {
@@ -2282,6 +2328,38 @@ mod tests {
         let b = again.solve(&f, false, None).unwrap();
         assert_eq!(a.iterations, b.iterations);
         assert!(a.u.iter().zip(&b.u).all(|(x, y)| x.to_bits() == y.to_bits()));
+    }
+
+    /// The set-up computes the interior factors and deluxe blocks beside
+    /// the coarse problem, on a layout made before it; weights set again
+    /// afterwards, the plain way (`set_interface_scaling`), give the same
+    /// preconditioner: the same iterates, bit for bit. A block of the wrong
+    /// subdomain or rows would change them.
+    #[test]
+    fn deluxe_blocks_made_beside_the_coarse_problem_are_the_plain_ones() {
+        let (model, dec, mut opts) = cg_test_problem();
+        (opts.tolerance, opts.max_iterations) = (1e-10, 200);
+        let f = model.load_cases[0].clone();
+        for kind in [InterfaceScaling::Deluxe, InterfaceScaling::EconomicDeluxe] {
+            opts.interface_scaling = kind;
+            let mut dd = DdSolver::new(&model, &dec, opts.clone()).unwrap();
+            let a = dd.solve(&f, false, None).unwrap();
+            assert_eq!(a.status, Status::Converged, "{kind:?}");
+            dd.set_interface_scaling(kind);
+            let b = dd.solve(&f, false, None).unwrap();
+            assert_eq!(a.iterations, b.iterations, "{kind:?}");
+            assert!(
+                a.u.iter().zip(&b.u).all(|(x, y)| x.to_bits() == y.to_bits()),
+                "{kind:?}"
+            );
+            // Without scaling the iterates differ: the test can tell.
+            dd.set_interface_scaling(InterfaceScaling::Multiplicity);
+            let c = dd.solve(&f, false, None).unwrap();
+            assert!(
+                a.u.iter().zip(&c.u).any(|(x, y)| x.to_bits() != y.to_bits()),
+                "{kind:?}"
+            );
+        }
     }
 
     /// The README's tower, taut (bars 1e4 × the cables), on 4 subdomains,

@@ -32,7 +32,9 @@ pub struct Timings {
 }
 
 /// Phases of one DD set-up, in seconds; `setup` less their sum is the
-/// model, the partition and the interfaces.
+/// model, the partition and the interfaces. cg's `interior` and `scaling`
+/// run beside the coarse problem's factorization (part of `coarse`), so
+/// with them the phases can add up to more than `setup`.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct SetupPhases {
     /// Subdomain assembly and factorizations, kernels included.

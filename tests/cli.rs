@@ -941,18 +941,16 @@ fn adaptive_threshold_flag_and_setup_phases() {
     let t = &r["timings_s"];
     let phases = &t["setup_phases"];
     assert!(phases["adaptive"].as_f64().unwrap() > 0.0, "{t}");
-    let sum: f64 = [
-        "factor",
-        "interior",
-        "scaling",
-        "coarse",
-        "adaptive",
-        "search_direction",
-    ]
-    .iter()
-    .map(|k| phases[*k].as_f64().unwrap_or_else(|| panic!("setup_phases lacks {k}")))
-    .sum();
-    assert!(sum <= t["setup"].as_f64().unwrap(), "{t}");
+    let phase = |k: &str| phases[k].as_f64().unwrap_or_else(|| panic!("setup_phases lacks {k}"));
+    // The interiors and the deluxe blocks run beside the coarse problem's
+    // factorization: each of the two lines of phases fits in the set-up.
+    let setup = t["setup"].as_f64().unwrap();
+    let serial = ["factor", "adaptive", "search_direction"]
+        .map(phase)
+        .iter()
+        .sum::<f64>();
+    assert!(serial + phase("coarse") <= setup, "{t}");
+    assert!(serial + phase("interior") + phase("scaling") <= setup, "{t}");
 
     let res = d.join("direct.json");
     ok(&nsdd(&["solve", s(&tower), "--method", "direct", "--out", s(&res)]));

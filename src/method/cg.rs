@@ -5,13 +5,14 @@
 
 use crate::cg_stopping::{self, CgStopping};
 use crate::comm::Communicator;
-use crate::dd::{DdSolver, FaceBlock, IfaceState};
+use crate::dd::{DdSolver, FaceBlock, IfaceState, SubState};
 use crate::error::Result;
 use crate::method::stopping::{finish, stalled};
 use crate::method::Progress;
 use crate::outcome::{Outcome, Status};
 use crate::result::HistoryEntry;
 use crate::scaling::{self, DeluxeBlock, EntryWeights, InterfaceScaling};
+use crate::subdomain::{InteriorProblem, SubdomainOperator};
 use faer::Mat;
 use rayon::prelude::*;
 use std::time::Instant;
@@ -560,6 +561,35 @@ impl DdSolver {
     /// problems must be factored first. Without the CG workspace (another
     /// method) there is nothing to set.
     pub fn set_interface_scaling(&mut self, kind: InterfaceScaling) {
+        if self.cg.is_none() {
+            return;
+        }
+        let layout = DeluxeLayout::new(
+            &self.op.ifaces,
+            &self.dof_maps,
+            &self.multiplicity,
+            self.op.comm.owned(),
+            kind,
+        );
+        let blocks = subdomain_blocks(
+            self.op.subs.iter_mut().map(BlockSource::of).collect(),
+            &self.op.ifaces,
+            &layout,
+            kind,
+        );
+        self.finish_interface_scaling(kind, layout, blocks);
+    }
+
+    /// [`Self::set_interface_scaling`] from the subdomains' blocks, computed
+    /// by [`subdomain_blocks`] on `layout` (the set-up computes them beside
+    /// the coarse problem): the weights, the neighbours' blocks where they
+    /// live on another process, and the deluxe blocks of every interface.
+    pub(crate) fn finish_interface_scaling(
+        &mut self,
+        kind: InterfaceScaling,
+        layout: DeluxeLayout,
+        blocks: SubdomainBlocks,
+    ) {
         let Some(ws) = self.cg.as_mut() else {
             return;
         };
@@ -618,104 +648,21 @@ impl DdSolver {
             _ => Vec::new(),
         };
         ws.w = scaling::interface_weights(&entries, &self.dof_maps, mult, &diag, kind);
-        // Face entries: dof shared by the two sides only.
-        let faces: Vec<Vec<u32>> = self
-            .op
-            .ifaces
-            .iter()
-            .map(|it| {
-                let m = &mult[it.lo];
-                (0..it.lo_idx.len() as u32)
-                    .filter(|&j| kind.is_deluxe() && m[it.lo_idx[j as usize] as usize] == 2)
-                    .collect()
-            })
-            .collect();
+        drop(entries);
         self.stats.near_blocks = 0;
-        if !kind.is_deluxe() {
+        let DeluxeLayout { faces, edges, .. } = layout;
+        let Some(edges) = edges.filter(|_| kind.is_deluxe()) else {
             ws.deluxe.iter_mut().for_each(Vec::clear);
             return;
-        }
-        // The dofs shared by three or more subdomains, by subdomain set.
-        let edges = scaling::Edges::new(&entries, &self.dof_maps, mult);
-        drop(entries);
-        // Per held subdomain: the rows of its edges' dofs, edge after edge.
-        let edge_rows: Vec<(Vec<u32>, Vec<usize>)> = held
-            .clone()
-            .map(|s| {
-                let mut rows = Vec::new();
-                let mut lens = Vec::new();
-                for &e in &edges.of_subdomain[s] {
-                    let edge = &edges.edges[e];
-                    let m = edge.subdomains.binary_search(&s).expect("an edge lists its subdomains");
-                    rows.extend_from_slice(&edge.rows[m]);
-                    lens.push(edge.rows[m].len());
-                }
-                (rows, lens)
-            })
-            .collect();
-        // Face blocks of each subdomain's Schur complement, one column per
-        // face dof: `S_E e_l` restricted to the face; then the block of all
-        // its edge dofs, whose diagonal blocks are the edges'.
+        };
+        let SubdomainBlocks {
+            blocks,
+            taken_over,
+            near,
+        } = blocks;
+        self.stats.face_blocks_reused = taken_over;
+        self.stats.near_blocks = near;
         let ifaces = &self.op.ifaces;
-        let taken_over = std::sync::atomic::AtomicUsize::new(0);
-        let near = std::sync::atomic::AtomicUsize::new(0);
-        let economic = kind == InterfaceScaling::EconomicDeluxe;
-        // Each block's rows (local, empty for the lumped blocks) and block.
-        let blocks: Vec<(Vec<FaceBlock>, FaceBlock)> = self
-            .op
-            .subs
-            .par_iter_mut()
-            .zip(edge_rows.into_par_iter())
-            .map(|(s, erows)| {
-                // Kept blocks of faces this set-up no longer has are dropped.
-                let mut earlier = s.face_blocks.as_mut().map(std::mem::take).unwrap_or_default();
-                // `parts`: the lengths of the pieces of `rows` whose blocks
-                // are wanted (the edges of the edge block); the blocks
-                // between pieces are not used.
-                let mut block_of = |rows: Vec<u32>, parts: &[usize]| -> FaceBlock {
-                    if rows.is_empty() {
-                        return (rows, Mat::zeros(0, 0));
-                    }
-                    let Some(ip) = s.interior.as_mut() else {
-                        // Lumped: the block of K_E.
-                        return (Vec::new(), s.op.principal_block(&rows));
-                    };
-                    // A set-up that took this subdomain over may hold the
-                    // block already.
-                    let b = match earlier.iter().position(|(r, _)| *r == rows) {
-                        Some(k) => {
-                            taken_over.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-                            earlier.swap_remove(k).1
-                        }
-                        // A failure (out of memory) leaves these dofs
-                        // without deluxe weights.
-                        None if economic => {
-                            near_blocks(ip, &s.op, &rows, parts, &near).unwrap_or_else(|_| Mat::zeros(0, 0))
-                        }
-                        None => ip.schur_block(&s.op, &rows).unwrap_or_else(|_| Mat::zeros(0, 0)),
-                    };
-                    (rows, b)
-                };
-                let face_blocks = s
-                    .ifaces
-                    .iter()
-                    .map(|&(i, is_lo)| {
-                        let it = &ifaces[i];
-                        let idx = if is_lo { &it.lo_idx } else { &it.hi_idx };
-                        let rows: Vec<u32> = faces[i].iter().map(|&f| idx[f as usize]).collect();
-                        let len = rows.len();
-                        block_of(rows, &[len])
-                    })
-                    .collect();
-                let edge_block = block_of(erows.0, &erows.1);
-                if let Some(ip) = s.interior.as_mut() {
-                    ip.release_face_scratch();
-                }
-                (face_blocks, edge_block)
-            })
-            .collect();
-        self.stats.face_blocks_reused = taken_over.into_inner();
-        self.stats.near_blocks = near.into_inner();
         let mut side: Vec<[Option<&Mat<f64>>; 2]> = vec![[None, None]; self.op.ifaces.len()];
         for (s, (b, _)) in self.op.subs.iter().zip(&blocks) {
             for (&(i, is_lo), (_, m)) in s.ifaces.iter().zip(b) {
@@ -816,6 +763,248 @@ impl DdSolver {
     /// with `K_E` per subdomain; no allocation.
     fn cg_energies(&mut self, ws: &mut CgWorkspace) -> (f64, f64) {
         self.op.jump_energies(&ws.v, &mut ws.energy)
+    }
+}
+
+/// Where the deluxe blocks sit: each interface's face entries (dofs shared
+/// by its two sides only), the edges (dofs shared by three or more
+/// subdomains) and, per held subdomain, the rows of its edges' dofs, edge
+/// after edge, with each edge's length. Cheap; computed before the blocks.
+pub(crate) struct DeluxeLayout {
+    faces: Vec<Vec<u32>>,
+    /// `None` without deluxe scaling.
+    edges: Option<scaling::Edges>,
+    edge_rows: Vec<(Vec<u32>, Vec<usize>)>,
+}
+
+impl DeluxeLayout {
+    /// The layout of `kind` on `ifaces`, for the subdomains `held`, with
+    /// every subdomain's dofs and multiplicities.
+    pub(crate) fn new(
+        ifaces: &[IfaceState],
+        dof_maps: &[Vec<usize>],
+        mult: &[Vec<u32>],
+        held: std::ops::Range<usize>,
+        kind: InterfaceScaling,
+    ) -> DeluxeLayout {
+        let faces: Vec<Vec<u32>> = ifaces
+            .iter()
+            .map(|it| {
+                let m = &mult[it.lo];
+                (0..it.lo_idx.len() as u32)
+                    .filter(|&j| kind.is_deluxe() && m[it.lo_idx[j as usize] as usize] == 2)
+                    .collect()
+            })
+            .collect();
+        if !kind.is_deluxe() {
+            return DeluxeLayout {
+                faces,
+                edges: None,
+                edge_rows: Vec::new(),
+            };
+        }
+        let entries: Vec<scaling::InterfaceEntries<'_>> = ifaces
+            .iter()
+            .map(|it| scaling::InterfaceEntries {
+                lo: it.lo,
+                hi: it.hi,
+                lo_idx: &it.lo_idx,
+                hi_idx: &it.hi_idx,
+            })
+            .collect();
+        let edges = scaling::Edges::new(&entries, dof_maps, mult);
+        let edge_rows = held
+            .map(|s| {
+                let mut rows = Vec::new();
+                let mut lens = Vec::new();
+                for &e in &edges.of_subdomain[s] {
+                    let edge = &edges.edges[e];
+                    let m = edge.subdomains.binary_search(&s).expect("an edge lists its subdomains");
+                    rows.extend_from_slice(&edge.rows[m]);
+                    lens.push(edge.rows[m].len());
+                }
+                (rows, lens)
+            })
+            .collect();
+        DeluxeLayout {
+            faces,
+            edges: Some(edges),
+            edge_rows,
+        }
+    }
+}
+
+/// What a held subdomain's deluxe blocks are computed from, borrowed apart
+/// from the rest of its state, so that the set-up can compute them beside
+/// the coarse problem (which reads the operators too).
+pub(crate) struct BlockSource<'a> {
+    pub(crate) op: &'a SubdomainOperator,
+    pub(crate) ifaces: &'a [(usize, bool)],
+    /// Its interface dofs (local, increasing).
+    pub(crate) iface_dofs: &'a [u32],
+    /// The Dirichlet interior problem (`None`: lumped blocks of `K_E`).
+    pub(crate) interior: &'a mut Option<InteriorProblem>,
+    /// Blocks a pooled set-up kept (`None`: none kept).
+    pub(crate) face_blocks: &'a mut Option<Vec<FaceBlock>>,
+}
+
+impl<'a> BlockSource<'a> {
+    pub(crate) fn of(s: &'a mut SubState) -> BlockSource<'a> {
+        BlockSource {
+            op: &s.op,
+            ifaces: &s.ifaces,
+            iface_dofs: &s.iface_dofs,
+            interior: &mut s.interior,
+            face_blocks: &mut s.face_blocks,
+        }
+    }
+}
+
+/// What cg's preconditioner needs of each held subdomain, computed before
+/// the solver is assembled (beside the coarse problem): its Dirichlet
+/// interior factor, then its deluxe blocks.
+pub(crate) struct Preconditioning {
+    /// Whether every interior factor was made (the first failure).
+    pub(crate) interiors: Result<()>,
+    pub(crate) interior_s: f64,
+    pub(crate) blocks: SubdomainBlocks,
+    pub(crate) blocks_s: f64,
+}
+
+impl Default for Preconditioning {
+    fn default() -> Preconditioning {
+        Preconditioning {
+            interiors: Ok(()),
+            interior_s: 0.0,
+            blocks: SubdomainBlocks::default(),
+            blocks_s: 0.0,
+        }
+    }
+}
+
+impl Preconditioning {
+    /// Factors the interiors the subdomains lack (with `dirichlet`), then
+    /// computes their blocks on `layout`. No communication: the caller
+    /// agrees on `interiors` with the other processes.
+    pub(crate) fn prepare(
+        mut sources: Vec<BlockSource<'_>>,
+        ifaces: &[IfaceState],
+        layout: &DeluxeLayout,
+        kind: InterfaceScaling,
+        dirichlet: bool,
+    ) -> Preconditioning {
+        let t = Instant::now();
+        let interiors = if dirichlet {
+            sources.par_iter_mut().try_for_each(|s| -> Result<()> {
+                if s.interior.is_none() {
+                    *s.interior = Some(InteriorProblem::new(s.op, s.iface_dofs)?);
+                }
+                Ok(())
+            })
+        } else {
+            Ok(())
+        };
+        let interior_s = t.elapsed().as_secs_f64();
+        if interiors.is_err() {
+            return Preconditioning {
+                interiors,
+                interior_s,
+                ..Preconditioning::default()
+            };
+        }
+        let t = Instant::now();
+        let blocks = subdomain_blocks(sources, ifaces, layout, kind);
+        Preconditioning {
+            interiors,
+            interior_s,
+            blocks,
+            blocks_s: t.elapsed().as_secs_f64(),
+        }
+    }
+}
+
+/// Each held subdomain's face blocks (one per interface, in its order) and
+/// edge block, with how many were taken over from a pooled set-up and how
+/// many were computed from the interior near them only.
+#[derive(Default)]
+pub(crate) struct SubdomainBlocks {
+    blocks: Vec<(Vec<FaceBlock>, FaceBlock)>,
+    taken_over: usize,
+    near: usize,
+}
+
+/// The subdomains' blocks of their Schur complements on the deluxe layout,
+/// one column per face dof: `S_E e_l` restricted to the face; then the
+/// block of all its edge dofs, whose diagonal blocks are the edges'. In
+/// parallel over the subdomains, no communication; nothing without deluxe
+/// scaling.
+pub(crate) fn subdomain_blocks(
+    sources: Vec<BlockSource<'_>>,
+    ifaces: &[IfaceState],
+    layout: &DeluxeLayout,
+    kind: InterfaceScaling,
+) -> SubdomainBlocks {
+    if layout.edges.is_none() || !kind.is_deluxe() {
+        return SubdomainBlocks::default();
+    }
+    let faces = &layout.faces;
+    let taken_over = std::sync::atomic::AtomicUsize::new(0);
+    let near = std::sync::atomic::AtomicUsize::new(0);
+    let economic = kind == InterfaceScaling::EconomicDeluxe;
+    let blocks = sources
+        .into_par_iter()
+        .zip(layout.edge_rows.par_iter())
+        .map(|(s, erows)| {
+            // Kept blocks of faces this set-up no longer has are dropped.
+            let mut earlier = s.face_blocks.as_mut().map(std::mem::take).unwrap_or_default();
+            let interior = s.interior;
+            // `parts`: the lengths of the pieces of `rows` whose blocks
+            // are wanted (the edges of the edge block); the blocks
+            // between pieces are not used.
+            let mut block_of = |rows: Vec<u32>, parts: &[usize]| -> FaceBlock {
+                if rows.is_empty() {
+                    return (rows, Mat::zeros(0, 0));
+                }
+                let Some(ip) = interior.as_mut() else {
+                    // Lumped: the block of K_E.
+                    return (Vec::new(), s.op.principal_block(&rows));
+                };
+                // A set-up that took this subdomain over may hold the
+                // block already.
+                let b = match earlier.iter().position(|(r, _)| *r == rows) {
+                    Some(k) => {
+                        taken_over.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                        earlier.swap_remove(k).1
+                    }
+                    // A failure (out of memory) leaves these dofs
+                    // without deluxe weights.
+                    None if economic => near_blocks(ip, s.op, &rows, parts, &near).unwrap_or_else(|_| Mat::zeros(0, 0)),
+                    None => ip.schur_block(s.op, &rows).unwrap_or_else(|_| Mat::zeros(0, 0)),
+                };
+                (rows, b)
+            };
+            let face_blocks = s
+                .ifaces
+                .iter()
+                .map(|&(i, is_lo)| {
+                    let it = &ifaces[i];
+                    let idx = if is_lo { &it.lo_idx } else { &it.hi_idx };
+                    let rows: Vec<u32> = faces[i].iter().map(|&f| idx[f as usize]).collect();
+                    let len = rows.len();
+                    block_of(rows, &[len])
+                })
+                .collect();
+            let edge_block = block_of(erows.0.clone(), &erows.1);
+            if let Some(ip) = interior.as_mut() {
+                ip.release_face_scratch();
+            }
+            (face_blocks, edge_block)
+        })
+        .collect();
+    SubdomainBlocks {
+        blocks,
+        taken_over: taken_over.into_inner(),
+        near: near.into_inner(),
     }
 }
 
