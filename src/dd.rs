@@ -1714,6 +1714,34 @@ impl DdSolver {
         self.forces.iter().flat_map(|f| f.iter().copied()).collect()
     }
 
+    /// The forces the interfaces carry with the current interface forces
+    /// `F` (as [`Self::interface_forces`] lays them out): `F + P f`, with
+    /// `f` the coarse step's macro forces of a loaded application of the
+    /// operator (one solve per subdomain and one coarse solve; the
+    /// subdomains' state is left with that application's). Where the next
+    /// set-up's macro space differs, they warm-start it better than `F`,
+    /// whose macro part only this set-up's coarse step completes.
+    pub(crate) fn total_interface_forces(&mut self) -> Vec<f64> {
+        self.op.apply(&self.forces, false, true);
+        let macro_f = self.op.coarse.as_ref().map(|c| c.macro_forces().to_vec());
+        let mut out = Vec::new();
+        for (force, it) in self.forces.iter().zip(&self.op.ifaces) {
+            let start = out.len();
+            out.extend_from_slice(force);
+            if let Some(f) = macro_f.as_ref() {
+                for q in 0..it.p.ncols() {
+                    let c = f[it.macro_off + q];
+                    if c != 0.0 {
+                        for j in 0..it.p.nrows() {
+                            out[start + j] += it.p[(j, q)] * c;
+                        }
+                    }
+                }
+            }
+        }
+        out
+    }
+
     /// Sets the interface forces a `warm` solve starts from: another
     /// solver's [`Self::interface_forces`] on the same decomposition (the
     /// nonsmooth CG warm-starts each active-set step from the last one).
@@ -2360,6 +2388,46 @@ mod tests {
                 "{kind:?}"
             );
         }
+    }
+
+    /// The forces the interfaces carry (`F + P f`) warm-start a set-up
+    /// with another macro space; CG's iterate `F` alone does not: its
+    /// macro part was the old coarse step's. Solved with quadratic macro
+    /// fields, the same structure set up with linear ones starts from `F`
+    /// far from the solution, from `F + P f` at it.
+    #[test]
+    fn carried_forces_warm_start_another_macro_space() {
+        let (model, dec, mut opts) = cg_test_problem();
+        (opts.tolerance, opts.max_iterations) = (1e-10, 200);
+        let f = model.load_cases[0].clone();
+        opts.macro_degree = MacroDegree::Fixed(2);
+        let mut quadratic = DdSolver::new(&model, &dec, opts.clone()).unwrap();
+        let solved = quadratic.solve(&f, false, None).unwrap();
+        assert_eq!(solved.status, Status::Converged);
+        let iterate = quadratic.interface_forces();
+        let carried = quadratic.total_interface_forces();
+        opts.macro_degree = MacroDegree::Fixed(1);
+        let mut linear = DdSolver::new(&model, &dec, opts).unwrap();
+        let mut start = |forces: &[f64]| {
+            linear.set_interface_forces(forces).unwrap();
+            let out = linear.solve(&f, true, None).unwrap();
+            assert_eq!(out.status, Status::Converged);
+            let e = solved
+                .u
+                .iter()
+                .zip(&out.u)
+                .map(|(a, b)| (a - b).powi(2))
+                .sum::<f64>()
+                .sqrt()
+                / solved.u.iter().map(|a| a * a).sum::<f64>().sqrt();
+            assert!(e < 1e-8, "{e:.1e}");
+            (out.history[0].indicator, out.iterations)
+        };
+        let (from_carried, its_carried) = start(&carried);
+        let (from_iterate, its_iterate) = start(&iterate);
+        assert!(from_carried < 1e-8, "{from_carried:.1e}");
+        assert!(from_iterate > 1e-4, "{from_iterate:.1e}");
+        assert!(its_carried < its_iterate, "{its_carried} against {its_iterate}");
     }
 
     /// The README's tower, taut (bars 1e4 × the cables), on 4 subdomains,

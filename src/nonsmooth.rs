@@ -20,7 +20,11 @@
 //! once a step flips at most [`ENDGAME_FLIPS`] of the cables, the
 //! requested tolerance once the set has settled and from the first solve
 //! at that tolerance on), and each starts from the interface forces of the
-//! previous one. A loose solve stops on its indicator alone; the set is
+//! previous one: CG's iterate `F` while the set moves, and in the tail the
+//! forces the interfaces carried, `F + P f` with the coarse step's macro
+//! forces (one more application of the last operator), which a new set
+//! whose kernels moved with its flips would otherwise recompute from
+//! nothing. A loose solve stops on its indicator alone; the set is
 //! accepted only after a certified solve to the requested tolerance
 //! leaves it unchanged. A set that stops settling ([`UNSETTLED_STEPS`]
 //! steps without cutting the fewest flips by a tenth) ends the solve
@@ -949,6 +953,26 @@ impl NonsmoothCg {
             let flips = next.iter().zip(&slack).filter(|(a, b)| a != b).count();
             let settles = flips == 0 || settling.record(outer, flips);
             schedule.flipped(flips, nc, soft);
+            if flips > 0 && schedule.endgame && total < self.opts.max_iterations {
+                // In the tail the next set differs from this one by a few
+                // cables, but its coarse space moves with the kernels they
+                // change, and from CG's iterate `F` alone the next solve
+                // would rebuild the macro forces `P f` from nothing: it
+                // started at an indicator of 1e-2 after one flip on the
+                // nonsmooth 12³ tower, against 2e-9 for the same set set up
+                // again. The forces the interfaces carried, `F + P f`, cost
+                // one application of this step's operator (counted, and
+                // only within the budget) and cut the iterations by 14–19 %
+                // on the 130² grid cut in 16 and the 30³ tower cut in 64.
+                // Taken while the set still moves, the loose solves stop
+                // closer to their start and the set cycled (the 20³ tower
+                // cut in 64: 37 steps unconverged, against 9).
+                let own = &self.dec;
+                let step = self.current.as_mut().expect("set up above");
+                let dec = step.dec.as_ref().unwrap_or(own);
+                forces = Some(keyed_forces(dec, &step.dd.total_interface_forces()));
+                total += 1;
+            }
             if std::env::var_os("NSDD_NS_DEBUG").is_some() {
                 eprintln!(
                     "outer {outer}: {} slack, soft {soft}, inner tol {inner_tol:.1e}, {} its (conv {}, {:?}, indicator {:.1e}), setup {setup_s:.3}s, cg {:.3}s, {} flips, violation {violation:.2e}",
