@@ -593,17 +593,7 @@ impl DdSolver {
         let Some(ws) = self.cg.as_mut() else {
             return;
         };
-        let entries: Vec<scaling::InterfaceEntries<'_>> = self
-            .op
-            .ifaces
-            .iter()
-            .map(|it| scaling::InterfaceEntries {
-                lo: it.lo,
-                hi: it.hi,
-                lo_idx: &it.lo_idx,
-                hi_idx: &it.hi_idx,
-            })
-            .collect();
+        let entries = interface_entries(&self.op.ifaces);
         let mult = &self.multiplicity;
         let held = self.op.comm.owned();
         let first = held.start;
@@ -766,6 +756,19 @@ impl DdSolver {
     }
 }
 
+/// Each interface's subdomains and entries, as [`crate::scaling`] reads them.
+fn interface_entries(ifaces: &[IfaceState]) -> Vec<scaling::InterfaceEntries<'_>> {
+    ifaces
+        .iter()
+        .map(|it| scaling::InterfaceEntries {
+            lo: it.lo,
+            hi: it.hi,
+            lo_idx: &it.lo_idx,
+            hi_idx: &it.hi_idx,
+        })
+        .collect()
+}
+
 /// Where the deluxe blocks sit: each interface's face entries (dofs shared
 /// by its two sides only), the edges (dofs shared by three or more
 /// subdomains) and, per held subdomain, the rows of its edges' dofs, edge
@@ -803,16 +806,7 @@ impl DeluxeLayout {
                 edge_rows: Vec::new(),
             };
         }
-        let entries: Vec<scaling::InterfaceEntries<'_>> = ifaces
-            .iter()
-            .map(|it| scaling::InterfaceEntries {
-                lo: it.lo,
-                hi: it.hi,
-                lo_idx: &it.lo_idx,
-                hi_idx: &it.hi_idx,
-            })
-            .collect();
-        let edges = scaling::Edges::new(&entries, dof_maps, mult);
+        let edges = scaling::Edges::new(&interface_entries(ifaces), dof_maps, mult);
         let edge_rows = held
             .map(|s| {
                 let mut rows = Vec::new();
