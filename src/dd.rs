@@ -1723,12 +1723,12 @@ impl DdSolver {
     /// whose macro part only this set-up's coarse step completes.
     pub(crate) fn total_interface_forces(&mut self) -> Vec<f64> {
         self.op.apply(&self.forces, false, true);
-        let macro_f = self.op.coarse.as_ref().map(|c| c.macro_forces().to_vec());
+        let macro_f = self.op.coarse.as_ref().map(|c| c.macro_forces());
         let mut out = Vec::new();
         for (force, it) in self.forces.iter().zip(&self.op.ifaces) {
             let start = out.len();
             out.extend_from_slice(force);
-            if let Some(f) = macro_f.as_ref() {
+            if let Some(f) = macro_f {
                 for q in 0..it.p.ncols() {
                     let c = f[it.macro_off + q];
                     if c != 0.0 {
