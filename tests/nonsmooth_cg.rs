@@ -816,3 +816,46 @@ fn the_active_set_tail_takes_the_direct_solvers_steps() {
         direct.iterations
     );
 }
+
+/// `r`'s slack flags (a solve at `tol`) are `direct`'s, up to cables whose
+/// slack is within the flags' threshold: 10 × `tol` of the cables' strain
+/// scale (with a margin of 2).
+fn assert_slack_flags_match(scene: &Scene, r: &SolveResult, direct: &SolveResult, tol: f64) {
+    let model = Model::from_scene(scene).unwrap();
+    let u = free_u(&model, direct);
+    let g: Vec<f64> = (0..model.elements.len())
+        .map(|e| model.elongation(e, &u) + model.elements[e].e0)
+        .collect();
+    let scale = model.cables.iter().fold(0.0f64, |m, &e| m.max(g[e].abs()));
+    let slack = model.cables.iter().filter(|&&e| direct.slack[e]).count();
+    assert!(slack > 100, "the scene has {slack} slack cables");
+    for &e in &model.cables {
+        if r.slack[e] != direct.slack[e] {
+            assert!(
+                g[e].abs() <= 2.0 * 10.0 * tol * scale,
+                "cable {e}: slack {} at {tol:.0e}, {} for direct, at strain {:.2e} of {scale:.2e}",
+                r.slack[e],
+                direct.slack[e],
+                g[e]
+            );
+        }
+    }
+}
+
+/// The slack flags of a loose solve: with their threshold scaled by the
+/// largest displacement (the plate's deflection, 1e3 times the cables'
+/// slacks) this grid at 1e-3 flagged 120 of its 1 430 slack cables.
+#[test]
+fn slack_flags_of_a_loose_solve_are_the_direct_solvers() {
+    let scene = grid(&GridParams {
+        nx: 32,
+        ny: 32,
+        ..Default::default()
+    });
+    let direct = solve(&scene, &opts(Method::Direct, 1, 1e-10)).unwrap();
+    for method in [Method::Cg, Method::Multilevel] {
+        let r = solve(&scene, &opts(method, 4, 1e-3)).unwrap();
+        assert!(r.converged, "{method:?}");
+        assert_slack_flags_match(&scene, &r, &direct, 1e-3);
+    }
+}
