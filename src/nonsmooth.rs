@@ -20,17 +20,17 @@
 //! once a step flips at most [`ENDGAME_FLIPS`] of the cables, the set's
 //! tolerance once the set has settled and from the first solve at that
 //! tolerance on; the set's tolerance is the requested one, or
-//! [`SET_TOLERANCE`] where that is looser), and each starts from the interface forces of the
-//! previous one: CG's iterate `F` while the set moves, and in the tail the
-//! forces the interfaces carried, `F + P f` with the coarse step's macro
-//! forces (one more application of the last operator), which a new set
-//! whose kernels moved with its flips would otherwise recompute from
-//! nothing. A loose solve stops on its indicator alone; the set is
-//! accepted only after a certified solve to the requested tolerance
-//! leaves it unchanged, or leaves no violation above the requested
-//! tolerance where that is looser than the set's. A set that stops settling ([`UNSETTLED_STEPS`]
-//! steps without cutting the fewest flips by a tenth) ends the solve
-//! unconverged, with a message that says so.
+//! [`SET_TOLERANCE`] where that is looser), and each starts from the
+//! interface forces of the previous one: CG's iterate `F` while the set
+//! moves, and in the tail the forces the interfaces carried, `F + P f`
+//! with the coarse step's macro forces (one more application of the last
+//! operator), which a new set whose kernels moved with its flips would
+//! otherwise recompute from nothing. A loose solve stops on its indicator
+//! alone; the set is accepted only after a certified solve at the set's
+//! tolerance leaves it unchanged, or leaves no violation above the
+//! requested tolerance where that is looser. A set that stops settling
+//! ([`UNSETTLED_STEPS`] steps without cutting the fewest flips by a tenth)
+//! ends the solve unconverged, with a message that says so.
 //!
 //! Each new slack set gets a new [`DdSolver`] (macro space and coarse
 //! problem rebuilt), but only the subdomains whose elements or local dof
@@ -531,9 +531,9 @@ fn reduced_problem(
 /// The inner tolerance of each outer step: loose while the set moves
 /// ([`INNER_TOL_FACTOR`] of the last relative violation, at most
 /// [`INNER_TOL_MAX`]); the set's tolerance (the requested one, at most
-/// [`SET_TOLERANCE`]) from the first solve at it
-/// on (the few flips left are solved at it rather than loosely and then
-/// again to confirm them). In the active set's tail ([`ENDGAME_FLIPS`]) by
+/// [`SET_TOLERANCE`]) from the first solve at it on (the few flips left
+/// are solved at it rather than loosely and then again to confirm them).
+/// In the active set's tail ([`ENDGAME_FLIPS`]) by
 /// the flips instead: its first set at the tolerance (few flips after a
 /// loose step may hide many small violations: the nonsmooth 30³ tower's 8
 /// flips were followed by 3 998), then [`ENDGAME_TOL_FACTOR`] of the
@@ -902,11 +902,11 @@ impl NonsmoothCg {
             dd.set_stopping(inner_tol, budget);
             // Certified (at least 2 × WINDOW CG terms) at the set's
             // tolerance only, whatever the requested one: a set that
-            // settles on a looser solve is confirmed at it. Certified
-            // whenever they met the requested tolerance, the loose steps
-            // at 1e-3 took 8 iterations each on the 65² grid cut in 16
-            // instead of 5, and the tail's steps at 1e-4 on the 130² grid
-            // 8 instead of 2.
+            // settles on a looser solve is confirmed at it. When every
+            // solve that met the requested tolerance was certified, the
+            // loose steps at 1e-3 took 8 iterations each on the 65² grid
+            // cut in 16 instead of 5, and the tail's steps at 1e-4 on the
+            // 130² grid 8 instead of 2.
             let certified = !(inner_tol > tol_set);
             dd.set_certified_stop(certified);
             if let Some(c) = dd.coarse_problem_mut() {
