@@ -118,6 +118,15 @@ fn check(scene: &Scene, subdomains: usize, tol: f64) -> SolveResult {
     cg
 }
 
+/// `nsdd gen grid nx=n ny=n`: the generator's defaults.
+fn plain_grid(n: usize) -> Scene {
+    grid(&GridParams {
+        nx: n,
+        ny: n,
+        ..Default::default()
+    })
+}
+
 fn grid_scene(n: usize, t0: f64, load: f64) -> Scene {
     grid(&GridParams {
         nx: n,
@@ -796,11 +805,7 @@ fn a_cable_set_that_does_not_settle_is_reported() {
 /// loosely and its cables near zero strain decided again and again).
 #[test]
 fn the_active_set_tail_takes_the_direct_solvers_steps() {
-    let scene = grid(&GridParams {
-        nx: 32,
-        ny: 32,
-        ..Default::default()
-    });
+    let scene = plain_grid(32);
     let direct = solve(&scene, &opts(Method::Direct, 1, 1e-8)).unwrap();
     let cg = check(&scene, 4, 1e-8);
     let steps = active_set_steps(&cg);
@@ -827,11 +832,7 @@ fn active_set_steps(r: &SolveResult) -> usize {
 /// above 1e-3 and never settling the smaller ones the flips moved about.
 #[test]
 fn a_loose_tolerance_costs_no_more_than_a_tight_one() {
-    let scene = grid(&GridParams {
-        nx: 80,
-        ny: 80,
-        ..Default::default()
-    });
+    let scene = plain_grid(80);
     let direct = solve(&scene, &opts(Method::Direct, 1, 1e-10)).unwrap();
     let tight = solve(&scene, &opts(Method::Cg, 16, 1e-8)).unwrap();
     let loose = solve(&scene, &opts(Method::Cg, 16, 1e-3)).unwrap();
@@ -882,11 +883,7 @@ fn assert_slack_flags_match(scene: &Scene, r: &SolveResult, direct: &SolveResult
 /// slacks) this grid at 1e-3 flagged 120 of its 1 430 slack cables.
 #[test]
 fn slack_flags_of_a_loose_solve_are_the_direct_solvers() {
-    let scene = grid(&GridParams {
-        nx: 32,
-        ny: 32,
-        ..Default::default()
-    });
+    let scene = plain_grid(32);
     let direct = solve(&scene, &opts(Method::Direct, 1, 1e-10)).unwrap();
     for method in [Method::Cg, Method::Multilevel] {
         let r = solve(&scene, &opts(method, 4, 1e-3)).unwrap();
