@@ -114,7 +114,7 @@ pub const INNER_TOL_FACTOR: f64 = 0.03;
 pub const SET_TOLERANCE: f64 = 1e-6;
 
 /// Flips, as a fraction of the cables, at or below which the next set is
-/// solved at the requested tolerance and the ones after it at
+/// solved at the set's tolerance ([`SET_TOLERANCE`]) and the ones after it at
 /// [`ENDGAME_TOL_FACTOR`] of their violation. The active set then
 /// is in the tail the direct solver has too (halving the flips at each
 /// step); with the loose steps' strains the cables near zero strain were
@@ -128,7 +128,7 @@ pub const ENDGAME_FLIPS: f64 = 1e-3;
 /// Inner tolerance of the tail's steps ([`ENDGAME_FLIPS`]) after its first
 /// set, as a fraction of the last relative violation: a thirtieth of the
 /// loose steps' [`INNER_TOL_FACTOR`]. The set they settle on is then
-/// confirmed at the requested tolerance, from where they left it. Solving
+/// confirmed at the set's tolerance, from where they left it. Solving
 /// every tail set to the requested tolerance took the same set-ups and
 /// 13 % more iterations on the 130² grid cut in 16 (145 against 128); the
 /// tail's first set stays at the tolerance, because few flips after a
@@ -138,7 +138,7 @@ pub const ENDGAME_FLIPS: f64 = 1e-3;
 /// violation".
 pub const ENDGAME_TOL_FACTOR: f64 = 1e-3;
 
-/// Flips at or below which the tail's next set is solved at the requested
+/// Flips at or below which the tail's next set is solved at the set's
 /// tolerance rather than at [`ENDGAME_TOL_FACTOR`] of its violation: it is
 /// then most likely the last set, and a looser solve would need a
 /// confirmation at the tolerance after it.
@@ -843,9 +843,9 @@ impl NonsmoothCg {
         let mut murty = false;
         // Relative size of the last violation; none measured yet.
         let mut violation = f64::INFINITY;
-        // The tolerance the set is decided at; a certified solve at the
-        // requested one may accept a set whose violations are all below
-        // that.
+        // The tolerance the set is decided at; a certified solve at it
+        // may accept a set whose violations are all below the requested
+        // one.
         let tol_set = tol.min(SET_TOLERANCE);
         let mut schedule = InnerTolerance::new(tol_set);
         let mut settling = Settling::new(self.unsettled_steps);
