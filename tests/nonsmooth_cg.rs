@@ -26,6 +26,13 @@ fn free_u(model: &Model, r: &SolveResult) -> Vec<f64> {
         .collect()
 }
 
+/// Each element's strain `e + e0` at the free-dof displacements `u`.
+fn element_strains(model: &Model, u: &[f64]) -> Vec<f64> {
+    (0..model.elements.len())
+        .map(|e| model.elongation(e, u) + model.elements[e].e0)
+        .collect()
+}
+
 /// KKT and equilibrium of a result, independent of any solver: slack
 /// cables have `e + e0 ≤ 0` (λ ≥ 0) and report tension 0, taut cables have
 /// `e + e0 ≥ 0` (t ≥ 0), and the reported tensions (with the geometric
@@ -33,9 +40,7 @@ fn free_u(model: &Model, r: &SolveResult) -> Vec<f64> {
 fn assert_kkt(scene: &Scene, r: &SolveResult, tol: f64) {
     let model = Model::from_scene(scene).unwrap();
     let u = free_u(&model, r);
-    let g: Vec<f64> = (0..model.elements.len())
-        .map(|e| model.elongation(e, &u) + model.elements[e].e0)
-        .collect();
+    let g = element_strains(&model, &u);
     let scale = g.iter().fold(0.0f64, |m, v| m.max(v.abs()));
     for &e in &model.cables {
         if r.slack[e] {
@@ -858,10 +863,7 @@ fn a_loose_tolerance_costs_no_more_than_a_tight_one() {
 /// scale (with a margin of 2).
 fn assert_slack_flags_match(scene: &Scene, r: &SolveResult, direct: &SolveResult, tol: f64) {
     let model = Model::from_scene(scene).unwrap();
-    let u = free_u(&model, direct);
-    let g: Vec<f64> = (0..model.elements.len())
-        .map(|e| model.elongation(e, &u) + model.elements[e].e0)
-        .collect();
+    let g = element_strains(&model, &free_u(&model, direct));
     let scale = model.cables.iter().fold(0.0f64, |m, &e| m.max(g[e].abs()));
     let slack = model.cables.iter().filter(|&&e| direct.slack[e]).count();
     assert!(slack > 100, "the scene has {slack} slack cables");
