@@ -386,29 +386,59 @@ impl CoarseProblem {
         kernel_owner: &[usize],
         describe: &dyn Fn(&[f64]) -> String,
     ) -> Result<CoarseProblem> {
+        Self::build(n_macro, n_kernel, parts, kernel_owner, describe, true)
+    }
+
+    /// Fails as [`CoarseProblem::new_described`] does when `G` is rank
+    /// deficient (the structure is a mechanism), from `G` alone: each
+    /// subdomain's `(cols, G_E, alpha_off)`. A set-up checks this before
+    /// the solves `L` needs, which a mechanism would waste (the nonsmooth
+    /// cg's exact steps on sets that leave one), and then builds the
+    /// problem with [`CoarseProblem::new_checked`].
+    pub(crate) fn check_restrained(
+        n_macro: usize,
+        n_kernel: usize,
+        parts: &[(&[usize], &Mat<f64>, usize)],
+        kernel_owner: &[usize],
+        describe: &dyn Fn(&[f64]) -> String,
+    ) -> Result<()> {
+        let g = kernel_coupling(n_macro, n_kernel, parts.iter().copied())?;
+        if n_kernel > 0 {
+            check_full_rank(&g, kernel_owner, describe)?;
+        }
+        Ok(())
+    }
+
+    /// [`CoarseProblem::new_described`] for contributions whose `G` passed
+    /// [`CoarseProblem::check_restrained`].
+    pub(crate) fn new_checked(
+        n_macro: usize,
+        n_kernel: usize,
+        parts: &[CoarseContribution],
+        kernel_owner: &[usize],
+        describe: &dyn Fn(&[f64]) -> String,
+    ) -> Result<CoarseProblem> {
+        Self::build(n_macro, n_kernel, parts, kernel_owner, describe, false)
+    }
+
+    fn build(
+        n_macro: usize,
+        n_kernel: usize,
+        parts: &[CoarseContribution],
+        kernel_owner: &[usize],
+        describe: &dyn Fn(&[f64]) -> String,
+        check_rank: bool,
+    ) -> Result<CoarseProblem> {
         let t0 = std::time::Instant::now();
         let nf = n_macro;
         let na = n_kernel;
         for p in parts {
-            if p.cols.iter().any(|&c| c >= nf) || p.alpha_off + p.g.ncols() > na {
+            if p.cols.iter().any(|&c| c >= nf) {
                 return Err(Error::Numerical("coarse contribution outside the coarse system".into()));
             }
         }
-        // G by columns (each kernel column belongs to one subdomain).
-        let mut g_cols: Vec<Vec<(usize, f64)>> = vec![Vec::new(); na];
-        for p in parts {
-            for q in 0..p.g.ncols() {
-                let col = &mut g_cols[p.alpha_off + q];
-                for (a, &ca) in p.cols.iter().enumerate() {
-                    let v = p.g[(a, q)];
-                    if v != 0.0 {
-                        col.push((ca, v));
-                    }
-                }
-            }
-        }
-        let g = KernelCoupling::from_columns(nf, g_cols);
-        if na > 0 {
+        let g = kernel_coupling(nf, na, parts.iter().map(|p| (&p.cols[..], &p.g, p.alpha_off)))?;
+        if na > 0 && check_rank {
             check_full_rank(&g, kernel_owner, describe)?;
         }
 
@@ -1477,6 +1507,31 @@ pub(crate) fn unrestrained_mode(subdomain: usize, where_: &str) -> Error {
 /// itself is a mechanism, so another partition of it fails the same way.
 pub(crate) fn is_unrestrained_mode(e: &Error) -> bool {
     matches!(e, Error::Mechanism(m) if m.contains(UNRESTRAINED))
+}
+
+/// `G` by columns (each kernel column belongs to one subdomain) from each
+/// subdomain's `(cols, G_E, alpha_off)`.
+fn kernel_coupling<'a>(
+    nf: usize,
+    na: usize,
+    parts: impl Iterator<Item = (&'a [usize], &'a Mat<f64>, usize)>,
+) -> Result<KernelCoupling> {
+    let mut g_cols: Vec<Vec<(usize, f64)>> = vec![Vec::new(); na];
+    for (cols, g, alpha_off) in parts {
+        if cols.iter().any(|&c| c >= nf) || alpha_off + g.ncols() > na || g.nrows() != cols.len() {
+            return Err(Error::Numerical("coarse contribution outside the coarse system".into()));
+        }
+        for q in 0..g.ncols() {
+            let col = &mut g_cols[alpha_off + q];
+            for (a, &ca) in cols.iter().enumerate() {
+                let v = g[(a, q)];
+                if v != 0.0 {
+                    col.push((ca, v));
+                }
+            }
+        }
+    }
+    Ok(KernelCoupling::from_columns(nf, g_cols))
 }
 
 /// Fails with a named subdomain when `G` has a (numerically) dependent

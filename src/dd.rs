@@ -370,17 +370,16 @@ impl SparseColumns {
     }
 }
 
-/// A subdomain's coarse blocks `L_E = W_Eᵀ Z_E`, `G_E = W_Eᵀ R_E` and the
-/// columns `W_E` they came from, on its interface dofs `rows` (`W_E` is zero
+/// A subdomain's coarse block `L_E = W_Eᵀ Z_E` and the
+/// columns `W_E` it came from, on its interface dofs `rows` (`W_E` is zero
 /// elsewhere). A later set-up of the same operator whose `W_E` is equal
-/// takes them, and `Z_E`, over instead of solving again: in the nonsmooth
+/// takes it, and `Z_E`, over instead of solving again: in the nonsmooth
 /// CG's last steps most subdomains keep their operator, and their
 /// neighbours' kernels, and so their macro columns.
 pub(crate) struct CoarseBlocks {
     rows: Vec<u32>,
     w: Mat<f64>,
     l: Mat<f64>,
-    g: Mat<f64>,
 }
 
 /// Copies into `z` (column-major, `n` rows per column) the column of
@@ -565,7 +564,7 @@ pub struct DdStats {
     /// CG's active-set steps).
     pub neumann_blocks_reused: usize,
     pub face_constraints_reused: usize,
-    /// Subdomains whose coarse blocks (`Z_E`, `L_E`, `G_E`) were taken over
+    /// Subdomains whose coarse blocks (`Z_E`, `L_E`) were taken over
     /// from the previous set-up: same operator and same macro columns on
     /// their interfaces, so no multi-RHS solve.
     pub coarse_blocks_reused: usize,
@@ -1375,8 +1374,14 @@ impl DdSolver {
         let reused_blocks = std::sync::atomic::AtomicUsize::new(0);
         let reused_columns = std::sync::atomic::AtomicUsize::new(0);
         if use_coarse {
-            let local_parts: Vec<CoarseContribution> = subs
-                .par_iter_mut()
+            // `W_E` on the interface rows and `G_E = W_Iᵀ R_I` first, and
+            // the rank of `G` checked from them: a structure that is a
+            // mechanism (a nonsmooth step's set that leaves one) fails here,
+            // before the solves of `Z_E` and the preconditioner's interiors
+            // and blocks (about 7 of the 10 s a failed exact step cost on the
+            // nonsmooth 410² grid cut in 64).
+            let early: Vec<(Vec<usize>, Mat<f64>, Mat<f64>)> = subs
+                .par_iter()
                 .map(|st| {
                     let n = st.op.n();
                     let mut cols = Vec::new();
@@ -1412,7 +1417,68 @@ impl DdSolver {
                         }
                     }
                     drop(at);
-                    let (l_e, g_e) = match st.coarse_kept.take() {
+                    let kernel = st.op.kernel();
+                    let ri = Mat::from_fn(rows.len(), kernel.ncols(), |i, j| kernel[(rows[i] as usize, j)]);
+                    let g_e = wi.transpose() * &ri;
+                    (cols, wi, g_e)
+                })
+                .collect();
+            {
+                let mut packed = Vec::new();
+                for (st, (cols, _, g_e)) in subs.iter().zip(&early) {
+                    packed.extend([st.alpha_off as f64, cols.len() as f64, g_e.ncols() as f64]);
+                    packed.extend(cols.iter().map(|&c| c as f64));
+                    for j in 0..g_e.ncols() {
+                        packed.extend(g_e.col(j).iter());
+                    }
+                }
+                let packed = seam.gather(&packed);
+                let mut g_parts = Vec::new();
+                let mut k = 0;
+                while k < packed.len() {
+                    let (off, m, r) = (packed[k] as usize, packed[k + 1] as usize, packed[k + 2] as usize);
+                    k += 3;
+                    let cols: Vec<usize> = packed[k..k + m].iter().map(|&c| c as usize).collect();
+                    k += m;
+                    let g = Mat::from_fn(m, r, |i, j| packed[k + j * m + i]);
+                    k += m * r;
+                    g_parts.push((cols, g, off));
+                }
+                let n_alpha = alpha_off;
+                let mut owner = vec![0usize; n_alpha];
+                for (s, (_, g, off)) in g_parts.iter().enumerate() {
+                    owner[*off..*off + g.ncols()].fill(s);
+                }
+                let describe = |alpha: &[f64]| {
+                    let modes: Vec<_> = subs
+                        .iter()
+                        .zip(&dec.subdomains[owned.clone()])
+                        .map(|(st, sd)| {
+                            (
+                                st.op.kernel(),
+                                &sd.dofs[..],
+                                &alpha[st.alpha_off..st.alpha_off + st.alpha.len()],
+                            )
+                        })
+                        .collect();
+                    largest_motion(&modes)
+                        .map(|d| format!(" (largest motion at {})", name_dof(d)))
+                        .unwrap_or_default()
+                };
+                let views: Vec<(&[usize], &Mat<f64>, usize)> =
+                    g_parts.iter().map(|(c, g, off)| (&c[..], g, *off)).collect();
+                seam.agree(CoarseProblem::check_restrained(
+                    n_macro, n_alpha, &views, &owner, &describe,
+                ))?;
+            }
+            let local_parts: Vec<CoarseContribution> = subs
+                .par_iter_mut()
+                .zip(early.into_par_iter())
+                .map(|(st, (cols, wi, g_e))| {
+                    let n = st.op.n();
+                    let m = cols.len();
+                    let rows = &st.iface_dofs;
+                    let l_e = match st.coarse_kept.take() {
                         // (faer's `==` asserts equal shapes: compare them first.)
                         Some(b)
                             if b.rows == *rows
@@ -1423,7 +1489,7 @@ impl DdSolver {
                         {
                             reused_blocks.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
                             st.z_iface = st.z.rows(rows);
-                            (b.l, b.g)
+                            b.l
                         }
                         kept => {
                             let mut z = vec![0.0; n * m];
@@ -1450,9 +1516,7 @@ impl DdSolver {
                             solve_some_columns(&mut st.op, &mut z, n, &fresh);
                             st.z = MacroResponses::new(z, n);
                             st.z_iface = st.z.rows(rows);
-                            let kernel = st.op.kernel();
-                            let ri = Mat::from_fn(rows.len(), kernel.ncols(), |i, j| kernel[(rows[i] as usize, j)]);
-                            (wi.transpose() * &st.z_iface, wi.transpose() * &ri)
+                            wi.transpose() * &st.z_iface
                         }
                     };
                     if retain_blocks {
@@ -1460,7 +1524,6 @@ impl DdSolver {
                             rows: rows.clone(),
                             w: wi.clone(),
                             l: l_e.clone(),
-                            g: g_e.clone(),
                         });
                     }
                     st.w_cols = SparseColumns::from_dense(rows, &wi);
@@ -1530,7 +1593,7 @@ impl DdSolver {
         let build_coarse = || {
             coarse_parts.as_ref().map(|(parts, owner, n_alpha)| {
                 let t = Instant::now();
-                let built = CoarseProblem::new_described(n_macro, *n_alpha, parts, owner, &describe);
+                let built = CoarseProblem::new_checked(n_macro, *n_alpha, parts, owner, &describe);
                 (built, t.elapsed().as_secs_f64())
             })
         };
@@ -2534,7 +2597,6 @@ mod tests {
                 if let Some((z, b)) = p.coarse.as_mut() {
                     b.w = -&b.w;
                     b.l.fill(0.0);
-                    b.g.fill(0.0);
                     z.data.fill(0.0);
                 }
                 strip(p)
