@@ -402,3 +402,52 @@ fn an_error_on_one_rank_ends_every_rank_alike() {
     assert_eq!(stderr.matches("error: ").count(), 1, "{stderr}");
     assert!(stderr.contains(&format!("error: {expected}")), "{stderr}");
 }
+
+/// A structure that is a mechanism is refused by the rank check of the
+/// coarse problem's `G`, which runs before the coarse solves: on 2 ranks
+/// (one subdomain each) every rank stops there with the threaded status
+/// and rank 0 alone prints the mechanism.
+#[test]
+fn a_mechanism_found_by_the_coarse_rank_check_ends_every_rank_alike() {
+    // Two bars in a vee, both ends held: node 1 is free to move along y.
+    let path = dir().join("mechanism.toml");
+    std::fs::write(
+        &path,
+        r#"[nodes]
+x = [0.0, 1.0, 2.0]
+y = [0.0, 0.0, 0.0]
+z = [0.0, 1.0, 0.0]
+[elements]
+a = [0, 1]
+b = [1, 2]
+kind = ["bar", "bar"]
+ea = [100.0, 100.0]
+[supports]
+node = [0, 2]
+dofs = ["xyz", "xyz"]
+[loads]
+node = [1]
+fz = [-1.0]
+"#,
+    )
+    .unwrap();
+    let scene = Scene::load(&path).unwrap();
+    let expected = match solve(&scene, &opts(&scene, Method::Cg, 2)) {
+        Err(e) => e,
+        Ok(_) => panic!("the threaded set-up should fail"),
+    };
+    assert!(
+        expected.to_string().contains("is not restrained by its interfaces"),
+        "{expected}"
+    );
+    let t = Instant::now();
+    let o = mpirun(
+        2,
+        &["solve", path.to_str().unwrap(), "--method", "cg", "--subdomains", "2"],
+    );
+    assert!(t.elapsed() < Duration::from_secs(60), "no hang");
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(3), "{stderr}");
+    assert_eq!(stderr.matches("error: ").count(), 1, "{stderr}");
+    assert!(stderr.contains("is not restrained by its interfaces"), "{stderr}");
+}
