@@ -361,6 +361,10 @@ const REGULARIZATION_FLOORS: &[f64] = &[1e-8, 1e-6, 1e-4, 1e-2, 1.0];
 /// Columns per batched solve when forming `B = L⁻¹ P G` (or `L_γ⁻¹ G`).
 const SCHUR_BATCH: usize = 32;
 
+/// The owner of each kernel column of `G` and the mechanism message's
+/// ending (see [`CoarseProblem::new_described`]).
+type RankCheck<'a> = (&'a [usize], &'a dyn Fn(&[f64]) -> String);
+
 impl CoarseProblem {
     /// Assembles and factors the coarse system from the subdomain
     /// contributions. `G` must have full column rank, otherwise a kernel
@@ -386,7 +390,7 @@ impl CoarseProblem {
         kernel_owner: &[usize],
         describe: &dyn Fn(&[f64]) -> String,
     ) -> Result<CoarseProblem> {
-        Self::build(n_macro, n_kernel, parts, kernel_owner, describe, true)
+        Self::build(n_macro, n_kernel, parts, Some((kernel_owner, describe)))
     }
 
     /// Fails as [`CoarseProblem::new_described`] does when `G` is rank
@@ -411,34 +415,23 @@ impl CoarseProblem {
 
     /// [`CoarseProblem::new_described`] for contributions whose `G` passed
     /// [`CoarseProblem::check_restrained`].
-    pub(crate) fn new_checked(
-        n_macro: usize,
-        n_kernel: usize,
-        parts: &[CoarseContribution],
-        kernel_owner: &[usize],
-        describe: &dyn Fn(&[f64]) -> String,
-    ) -> Result<CoarseProblem> {
-        Self::build(n_macro, n_kernel, parts, kernel_owner, describe, false)
+    pub(crate) fn new_checked(n_macro: usize, n_kernel: usize, parts: &[CoarseContribution]) -> Result<CoarseProblem> {
+        Self::build(n_macro, n_kernel, parts, None)
     }
 
+    /// The coarse problem, with `G`'s rank checked first where `check`
+    /// gives the owner of each kernel column and the mechanism's message.
     fn build(
         n_macro: usize,
         n_kernel: usize,
         parts: &[CoarseContribution],
-        kernel_owner: &[usize],
-        describe: &dyn Fn(&[f64]) -> String,
-        check_rank: bool,
+        check: Option<RankCheck<'_>>,
     ) -> Result<CoarseProblem> {
         let t0 = std::time::Instant::now();
         let nf = n_macro;
         let na = n_kernel;
-        for p in parts {
-            if p.cols.iter().any(|&c| c >= nf) {
-                return Err(Error::Numerical("coarse contribution outside the coarse system".into()));
-            }
-        }
         let g = kernel_coupling(nf, na, parts.iter().map(|p| (&p.cols[..], &p.g, p.alpha_off)))?;
-        if na > 0 && check_rank {
+        if let (true, Some((kernel_owner, describe))) = (na > 0, check) {
             check_full_rank(&g, kernel_owner, describe)?;
         }
 

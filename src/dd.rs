@@ -730,27 +730,24 @@ fn packed_cross_directions(dec: &Decomposition, ifaces: &[IfaceState], held: imp
     packed
 }
 
-/// [`CoarseContribution`]s as one vector of numbers, to gather them from
-/// every process: per subdomain `alpha_off, m, r`, the `m` columns, then
-/// `L` and `G` column by column. Indices are below 2⁵³, exact in an f64.
-fn pack_contributions(parts: &[CoarseContribution]) -> Vec<f64> {
+/// Each subdomain's `(alpha_off, cols, G_E)` as one vector of numbers, to
+/// gather them from every process (in subdomain order): per subdomain
+/// `alpha_off, m, r`, the `m` columns, then `G_E` column by column.
+/// Indices are below 2⁵³, exact in an f64.
+fn pack_kernel_parts<'a>(parts: impl Iterator<Item = (usize, &'a [usize], &'a Mat<f64>)>) -> Vec<f64> {
     let mut v = Vec::new();
-    for p in parts {
-        let (m, r) = (p.cols.len(), p.g.ncols());
-        v.extend([p.alpha_off as f64, m as f64, r as f64]);
-        v.extend(p.cols.iter().map(|&c| c as f64));
-        for j in 0..m {
-            v.extend(p.l.col(j).iter());
-        }
-        for j in 0..r {
-            v.extend(p.g.col(j).iter());
+    for (alpha_off, cols, g) in parts {
+        v.extend([alpha_off as f64, cols.len() as f64, g.ncols() as f64]);
+        v.extend(cols.iter().map(|&c| c as f64));
+        for j in 0..g.ncols() {
+            v.extend(g.col(j).iter());
         }
     }
     v
 }
 
-/// The inverse of [`pack_contributions`].
-fn unpack_contributions(v: &[f64]) -> Vec<CoarseContribution> {
+/// The inverse of [`pack_kernel_parts`]: `(cols, G_E, alpha_off)`.
+fn unpack_kernel_parts(v: &[f64]) -> Vec<(Vec<usize>, Mat<f64>, usize)> {
     let mut out = Vec::new();
     let mut k = 0;
     while k < v.len() {
@@ -758,11 +755,35 @@ fn unpack_contributions(v: &[f64]) -> Vec<CoarseContribution> {
         k += 3;
         let cols = v[k..k + m].iter().map(|&c| c as usize).collect();
         k += m;
-        let l = Mat::from_fn(m, m, |i, j| v[k + j * m + i]);
-        k += m * m;
         let g = Mat::from_fn(m, r, |i, j| v[k + j * m + i]);
         k += m * r;
-        out.push(CoarseContribution { cols, l, g, alpha_off });
+        out.push((cols, g, alpha_off));
+    }
+    out
+}
+
+/// Each subdomain's square block `L_E` as one vector of `f64` (order, then
+/// the values by columns), in subdomain order.
+fn pack_macro_blocks(blocks: &[Mat<f64>]) -> Vec<f64> {
+    let mut v = Vec::new();
+    for l in blocks {
+        v.push(l.nrows() as f64);
+        for j in 0..l.ncols() {
+            v.extend(l.col(j).iter());
+        }
+    }
+    v
+}
+
+/// The inverse of [`pack_macro_blocks`].
+fn unpack_macro_blocks(v: &[f64]) -> Vec<Mat<f64>> {
+    let mut out = Vec::new();
+    let mut k = 0;
+    while k < v.len() {
+        let m = v[k] as usize;
+        k += 1;
+        out.push(Mat::from_fn(m, m, |i, j| v[k + j * m + i]));
+        k += m * m;
     }
     out
 }
@@ -1423,58 +1444,47 @@ impl DdSolver {
                     (cols, wi, g_e)
                 })
                 .collect();
-            {
-                let mut packed = Vec::new();
-                for (st, (cols, _, g_e)) in subs.iter().zip(&early) {
-                    packed.extend([st.alpha_off as f64, cols.len() as f64, g_e.ncols() as f64]);
-                    packed.extend(cols.iter().map(|&c| c as f64));
-                    for j in 0..g_e.ncols() {
-                        packed.extend(g_e.col(j).iter());
-                    }
-                }
-                let packed = seam.gather(&packed);
-                let mut g_parts = Vec::new();
-                let mut k = 0;
-                while k < packed.len() {
-                    let (off, m, r) = (packed[k] as usize, packed[k + 1] as usize, packed[k + 2] as usize);
-                    k += 3;
-                    let cols: Vec<usize> = packed[k..k + m].iter().map(|&c| c as usize).collect();
-                    k += m;
-                    let g = Mat::from_fn(m, r, |i, j| packed[k + j * m + i]);
-                    k += m * r;
-                    g_parts.push((cols, g, off));
-                }
-                let n_alpha = alpha_off;
-                let mut owner = vec![0usize; n_alpha];
-                for (s, (_, g, off)) in g_parts.iter().enumerate() {
-                    owner[*off..*off + g.ncols()].fill(s);
-                }
-                let describe = |alpha: &[f64]| {
-                    let modes: Vec<_> = subs
-                        .iter()
-                        .zip(&dec.subdomains[owned.clone()])
-                        .map(|(st, sd)| {
-                            (
-                                st.op.kernel(),
-                                &sd.dofs[..],
-                                &alpha[st.alpha_off..st.alpha_off + st.alpha.len()],
-                            )
-                        })
-                        .collect();
-                    largest_motion(&modes)
-                        .map(|d| format!(" (largest motion at {})", name_dof(d)))
-                        .unwrap_or_default()
-                };
-                let views: Vec<(&[usize], &Mat<f64>, usize)> =
-                    g_parts.iter().map(|(c, g, off)| (&c[..], g, *off)).collect();
-                seam.agree(CoarseProblem::check_restrained(
-                    n_macro, n_alpha, &views, &owner, &describe,
-                ))?;
+            // Every process checks and then assembles the whole coarse
+            // problem from every subdomain's contribution (in subdomain order).
+            let g_parts = unpack_kernel_parts(
+                &seam.gather(&pack_kernel_parts(
+                    subs.iter()
+                        .zip(&early)
+                        .map(|(st, (cols, _, g_e))| (st.alpha_off, &cols[..], g_e)),
+                )),
+            );
+            let n_alpha = alpha_off;
+            let mut owner = vec![0usize; n_alpha];
+            for (s, (_, g, off)) in g_parts.iter().enumerate() {
+                owner[*off..*off + g.ncols()].fill(s);
             }
-            let local_parts: Vec<CoarseContribution> = subs
+            let describe = |alpha: &[f64]| {
+                // The subdomains held here (rank 0's message is the one shown).
+                let modes: Vec<_> = subs
+                    .iter()
+                    .zip(&dec.subdomains[owned.clone()])
+                    .map(|(st, sd)| {
+                        (
+                            st.op.kernel(),
+                            &sd.dofs[..],
+                            &alpha[st.alpha_off..st.alpha_off + st.alpha.len()],
+                        )
+                    })
+                    .collect();
+                largest_motion(&modes)
+                    .map(|d| format!(" (largest motion at {})", name_dof(d)))
+                    .unwrap_or_default()
+            };
+            let views: Vec<(&[usize], &Mat<f64>, usize)> =
+                g_parts.iter().map(|(c, g, off)| (&c[..], g, *off)).collect();
+            seam.agree(CoarseProblem::check_restrained(
+                n_macro, n_alpha, &views, &owner, &describe,
+            ))?;
+            drop(views);
+            let local_blocks: Vec<Mat<f64>> = subs
                 .par_iter_mut()
                 .zip(early.into_par_iter())
-                .map(|(st, (cols, wi, g_e))| {
+                .map(|(st, (cols, wi, _))| {
                     let n = st.op.n();
                     let m = cols.len();
                     let rows = &st.iface_dofs;
@@ -1530,33 +1540,23 @@ impl DdSolver {
                     st.rb = vec![0.0; rows.len()];
                     st.zt_r = vec![0.0; m];
                     st.fm = vec![0.0; m];
-                    st.macro_cols = cols.clone();
-                    CoarseContribution {
-                        cols,
-                        l: l_e,
-                        g: g_e,
-                        alpha_off: st.alpha_off,
-                    }
+                    st.macro_cols = cols;
+                    l_e
                 })
                 .collect();
-            // Every process assembles and factors the whole coarse problem
-            // from every subdomain's contribution (in subdomain order).
-            let parts = seam.gather(&pack_contributions(&local_parts));
-            drop(local_parts);
-            let parts = unpack_contributions(&parts);
-            let n_alpha = alpha_off;
-            let mut owner = vec![0usize; n_alpha];
-            for (s, p) in parts.iter().enumerate() {
-                owner[p.alpha_off..p.alpha_off + p.g.ncols()].fill(s);
-            }
-            coarse_parts = Some((parts, owner, n_alpha));
+            let blocks = unpack_macro_blocks(&seam.gather(&pack_macro_blocks(&local_blocks)));
+            drop(local_blocks);
+            let parts: Vec<CoarseContribution> = g_parts
+                .into_iter()
+                .zip(blocks)
+                .map(|((cols, g, alpha_off), l)| CoarseContribution { cols, l, g, alpha_off })
+                .collect();
+            coarse_parts = Some((parts, n_alpha));
         }
         // The coarse problem's factorizations have serial stretches; cg's
         // interior factors and deluxe blocks (the subdomains' own work, no
         // communication) fill them. The operators are only read from here
-        // on: the coarse problem reads their kernels (for its message), the
-        // interiors are factored from them.
-        let mut kernels = Vec::with_capacity(subs.len());
+        // on: the interiors are factored from them.
         let mut sources = Vec::with_capacity(subs.len());
         for st in subs.iter_mut() {
             let SubState {
@@ -1565,12 +1565,8 @@ impl DdSolver {
                 iface_dofs,
                 interior,
                 face_blocks,
-                alpha_off,
-                alpha,
                 ..
             } = st;
-            let op: &SubdomainOperator = op;
-            kernels.push((op.kernel(), *alpha_off, alpha.len()));
             sources.push(BlockSource {
                 op,
                 ifaces: sides,
@@ -1579,21 +1575,10 @@ impl DdSolver {
                 face_blocks,
             });
         }
-        let describe = |alpha: &[f64]| {
-            // The subdomains held here (rank 0's message is the one shown).
-            let modes: Vec<_> = kernels
-                .iter()
-                .zip(&dec.subdomains[owned.clone()])
-                .map(|(&(kernel, off, r), sd)| (kernel, &sd.dofs[..], &alpha[off..off + r]))
-                .collect();
-            largest_motion(&modes)
-                .map(|d| format!(" (largest motion at {})", name_dof(d)))
-                .unwrap_or_default()
-        };
         let build_coarse = || {
-            coarse_parts.as_ref().map(|(parts, owner, n_alpha)| {
+            coarse_parts.as_ref().map(|(parts, n_alpha)| {
                 let t = Instant::now();
-                let built = CoarseProblem::new_checked(n_macro, *n_alpha, parts, owner, &describe);
+                let built = CoarseProblem::new_checked(n_macro, *n_alpha, parts);
                 (built, t.elapsed().as_secs_f64())
             })
         };
@@ -1603,7 +1588,7 @@ impl DdSolver {
         };
         let coarse_start = t_coarse.elapsed().as_secs_f64();
         let (built, prepared) = rayon::join(build_coarse, prepare);
-        drop((kernels, coarse_parts));
+        drop(coarse_parts);
         let mut coarse_own_s = coarse_start;
         if let Some((built, s)) = built {
             coarse_own_s += s;
