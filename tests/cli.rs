@@ -321,28 +321,7 @@ fn negative_flag_values_reach_the_flags_own_check() {
 /// after the free one) and the multilevel one named no node at all.
 #[test]
 fn mechanism_message_names_the_free_node_and_component() {
-    let d = tmp("mech-xz");
-    let scene = d.join("xz.toml");
-    std::fs::write(
-        &scene,
-        r#"[nodes]
-x = [0.0, 1.0, 2.0]
-y = [0.0, 0.0, 0.0]
-z = [0.0, 1.0, 0.0]
-[elements]
-a = [0, 1]
-b = [1, 2]
-kind = ["bar", "bar"]
-ea = [100.0, 100.0]
-[supports]
-node = [0, 2]
-dofs = ["xyz", "xyz"]
-[loads]
-node = [1]
-fz = [-1.0]
-"#,
-    )
-    .unwrap();
+    let scene = root().join("tests/data/vee-mechanism.toml");
     for (method, subdomains, want) in [
         ("direct", "1", "no stiffness at node 1 component y"),
         ("multilevel", "1", "largest at node 1, component y"),

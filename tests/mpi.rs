@@ -410,27 +410,7 @@ fn an_error_on_one_rank_ends_every_rank_alike() {
 #[test]
 fn a_mechanism_found_by_the_coarse_rank_check_ends_every_rank_alike() {
     // Two bars in a vee, both ends held: node 1 is free to move along y.
-    let path = dir().join("mechanism.toml");
-    std::fs::write(
-        &path,
-        r#"[nodes]
-x = [0.0, 1.0, 2.0]
-y = [0.0, 0.0, 0.0]
-z = [0.0, 1.0, 0.0]
-[elements]
-a = [0, 1]
-b = [1, 2]
-kind = ["bar", "bar"]
-ea = [100.0, 100.0]
-[supports]
-node = [0, 2]
-dofs = ["xyz", "xyz"]
-[loads]
-node = [1]
-fz = [-1.0]
-"#,
-    )
-    .unwrap();
+    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/data/vee-mechanism.toml");
     let scene = Scene::load(&path).unwrap();
     let expected = match solve(&scene, &opts(&scene, Method::Cg, 2)) {
         Err(e) => e,
