@@ -18,8 +18,12 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 use std::time::{Duration, Instant};
 
+/// Where the scenes and results of these tests go: under the target
+/// directory, as the CLI tests' files (a directory per process under the
+/// system's temporary one was never removed, and every run left one).
+/// Each result file is removed before the run that writes it.
 fn dir() -> PathBuf {
-    let d = std::env::temp_dir().join(format!("nsdd-mpi-test-{}", std::process::id()));
+    let d = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("mpi");
     std::fs::create_dir_all(&d).unwrap();
     d
 }
@@ -74,6 +78,8 @@ fn agree(scene_path: &Path, threaded: &SolveResult, method: Method, n: usize, np
         scene_path.file_stem().unwrap().to_str().unwrap(),
         method.name()
     ));
+    // A result left by an earlier run must not stand in for this one's.
+    let _ = std::fs::remove_file(&out);
     let o = mpirun(
         np,
         &[
@@ -302,6 +308,7 @@ fn load_path_and_load_cases_on_2_ranks() {
     let path = dir().join("grid-path.toml");
     let vtk = |sub: &str, np: usize| -> Vec<(String, Vec<u8>)> {
         let d = dir().join(sub);
+        let _ = std::fs::remove_dir_all(&d);
         std::fs::create_dir_all(&d).unwrap();
         let out = d.join("r.vtu");
         let args = [
