@@ -174,7 +174,10 @@ impl Partition {
 
     /// Removes local mechanisms at the cut. A subdomain holds a node
     /// *weakly* when its elements there do not span the node's free dofs
-    /// (the node can move freely in that subdomain). For each weak holder,
+    /// (the node can move freely in that subdomain), or, where one of them
+    /// is a strut (compressed, with geometric stiffness), when their block
+    /// of the node's stiffness is not positive definite (the subdomain is
+    /// then indefinite). For each weak holder,
     /// first try to *pull* elements at the node from other holders that stay
     /// strong without them (and that do not leave a weak node at the
     /// element's other end); if that cannot make it strong, *give* its
@@ -267,7 +270,7 @@ fn repair(model: &Model, part_of: &mut [usize], n_parts: usize) -> usize {
         if let Some(a) = add {
             st.push(a);
         }
-        st.is_empty() || free(n).is_empty() || spans(model, &st, free(n))
+        st.is_empty() || free(n).is_empty() || held(model, &st, free(n))
     };
     let mut count = vec![0usize; n_parts];
     for &p in part_of.iter() {
@@ -294,7 +297,7 @@ fn repair(model: &Model, part_of: &mut [usize], n_parts: usize) -> usize {
                 continue;
             }
             for &p in &parts {
-                if spans(model, &star(n, p, part_of), free(n)) {
+                if held(model, &star(n, p, part_of), free(n)) {
                     continue;
                 }
                 // Pull: elements of other holders at n whose removal keeps
@@ -314,12 +317,12 @@ fn repair(model: &Model, part_of: &mut [usize], n_parts: usize) -> usize {
                     {
                         part_of[e] = p;
                         pulled.push((e, q));
-                        if spans(model, &star(n, p, part_of), free(n)) {
+                        if held(model, &star(n, p, part_of), free(n)) {
                             break;
                         }
                     }
                 }
-                if spans(model, &star(n, p, part_of), free(n)) {
+                if held(model, &star(n, p, part_of), free(n)) {
                     for &(e, q) in &pulled {
                         moves[e] += 1;
                         count[q] -= 1;
@@ -337,7 +340,7 @@ fn repair(model: &Model, part_of: &mut [usize], n_parts: usize) -> usize {
                 let strong: Vec<usize> = parts
                     .iter()
                     .copied()
-                    .filter(|&q| q != p && spans(model, &star(n, q, part_of), free(n)))
+                    .filter(|&q| q != p && held(model, &star(n, q, part_of), free(n)))
                     .collect();
                 let pool = if strong.is_empty() {
                     parts.iter().copied().filter(|&q| q != p).collect()
@@ -377,6 +380,59 @@ fn repair(model: &Model, part_of: &mut [usize], n_parts: usize) -> usize {
 
 /// Passes of [`Partition::repair_weak_nodes`].
 pub const REPAIR_PASSES: usize = 8;
+
+/// Whether `elements` (all at one node) hold it in its `free` components:
+/// their directions span them ([`spans`]) and, where one of them is a
+/// compressed element with geometric stiffness (a strut, whose transverse
+/// stiffness `t/L` is negative), the node's block of their stiffness is
+/// positive definite: a subdomain holding a strut's end without the
+/// cables that stabilise it there is indefinite, where the whole
+/// structure is not.
+fn held(model: &Model, elements: &[usize], free: &[usize]) -> bool {
+    spans(model, elements, free)
+        && (!elements.iter().any(|&e| model.elements[e].geo < 0.0) || definite(model, elements, free))
+}
+
+/// Whether the sum of the node blocks `k n nᵀ + g (I − n nᵀ)` of
+/// `elements`, restricted to `free`, is positive definite (Cholesky pivots
+/// above [`DEFINITE_NODE_RATIO`] of its trace).
+fn definite(model: &Model, elements: &[usize], free: &[usize]) -> bool {
+    let mut m = [[0.0f64; 3]; 3];
+    for &e in elements {
+        let b = model.elements[e].block();
+        for (i, &a) in free.iter().enumerate() {
+            for (j, &c) in free.iter().enumerate() {
+                m[i][j] += b[a][c];
+            }
+        }
+    }
+    let d = free.len();
+    let tr: f64 = (0..d).map(|i| m[i][i]).sum();
+    let mut l = [[0.0f64; 3]; 3];
+    for j in 0..d {
+        let mut p = m[j][j];
+        for k in 0..j {
+            p -= l[j][k] * l[j][k];
+        }
+        if !(p > DEFINITE_NODE_RATIO * tr) {
+            return false;
+        }
+        let p = p.sqrt();
+        l[j][j] = p;
+        for i in j + 1..d {
+            let mut v = m[i][j];
+            for k in 0..j {
+                v -= l[i][k] * l[j][k];
+            }
+            l[i][j] = v / p;
+        }
+    }
+    true
+}
+
+/// Pivot, relative to the trace, below which a node block with a strut
+/// counts as not positive definite ([`definite`]).
+const DEFINITE_NODE_RATIO: f64 = 1e-8;
 
 /// Whether the directions of `elements` (all at one node) span the node's
 /// `free` components: `Σ dir dirᵀ` restricted to them is regular.
