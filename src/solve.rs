@@ -32,7 +32,7 @@ use crate::comm::Placement;
 use crate::dd::{DdOptions, DdSolver, Refined};
 use crate::decomposition::Decomposition;
 use crate::direct::DirectSolver;
-use crate::error::Result;
+use crate::error::{Error, Result};
 use crate::factor::OrderingKind;
 use crate::model::Model;
 use crate::nonsmooth::{NonsmoothCg, NonsmoothOptions};
@@ -401,6 +401,30 @@ pub fn solve_in(
 ) -> Result<SolveResult> {
     // The set-up's parallel loops too (see `on_workers`).
     crate::method::on_workers(placement.in_process(), || solve_here(scene, opts, progress, placement))
+        .map_err(|e| with_strut_hint(scene, e))
+}
+
+/// An indefinite subdomain of a structure with compressed struts (geometric
+/// stiffness) is most likely a partition that separates struts from the
+/// cables that stabilise them, not an indefinite structure: the error says
+/// what may solve it, unless it already does (a nonsmooth step's message).
+fn with_strut_hint(scene: &Scene, e: Error) -> Error {
+    match e {
+        Error::IndefiniteSubdomain { subdomain, message }
+            if !message.contains("`direct`")
+                && Model::from_scene(scene).is_ok_and(|m| m.elements.iter().any(|el| el.geo < 0.0)) =>
+        {
+            Error::IndefiniteSubdomain {
+                subdomain,
+                message: format!(
+                    "{message}; with compressed struts a subdomain can be indefinite where the structure is not: \
+                     `direct`, fewer subdomains or another partition (`partitioner = \"metis\"`, \
+                     `elements.subdomain`) may solve it"
+                ),
+            }
+        }
+        e => e,
+    }
 }
 
 /// [`solve_in`], on the thread that runs it.

@@ -217,7 +217,7 @@ fn tensegrity_slack_cables_keep_their_geometric_stiffness() {
 /// leave one holding compressed struts only: its stiffness is indefinite.
 /// That is the error, naming the subdomain; no cable is slack, so it is not
 /// dressed up as a mechanism of a slack set (it was: "when its 0 slack
-/// cables are removed (elements )").
+/// cables are removed (elements )"). It says what may solve it.
 #[test]
 fn an_indefinite_subdomain_with_no_slack_cable_is_reported_as_such() {
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/tensegrity-2x2.toml");
@@ -232,6 +232,10 @@ fn an_indefinite_subdomain_with_no_slack_cable_is_reported_as_such() {
             assert!(subdomain < 16);
             assert!(
                 message.contains("indefinite") && !message.contains("slack"),
+                "{message}"
+            );
+            assert!(
+                message.contains("`direct`") && message.contains("metis") && message.contains("fewer subdomains"),
                 "{message}"
             );
         }
