@@ -361,9 +361,10 @@ const REGULARIZATION_FLOORS: &[f64] = &[1e-8, 1e-6, 1e-4, 1e-2, 1.0];
 /// Columns per batched solve when forming `B = L⁻¹ P G` (or `L_γ⁻¹ G`).
 const SCHUR_BATCH: usize = 32;
 
-/// The owner of each kernel column of `G` and the mechanism message's
-/// ending (see [`CoarseProblem::new_described`]).
-type RankCheck<'a> = (&'a [usize], &'a dyn Fn(&[f64]) -> String);
+/// `G` assembled from the subdomains' `G_E` and found of full column rank
+/// by [`CoarseProblem::check_restrained`]: what
+/// [`CoarseProblem::new_checked`] builds the coarse problem on.
+pub(crate) struct RestrainedCoupling(KernelCoupling);
 
 impl CoarseProblem {
     /// Assembles and factors the coarse system from the subdomain
@@ -390,7 +391,9 @@ impl CoarseProblem {
         kernel_owner: &[usize],
         describe: &dyn Fn(&[f64]) -> String,
     ) -> Result<CoarseProblem> {
-        Self::build(n_macro, n_kernel, parts, Some((kernel_owner, describe)))
+        let views: Vec<(&[usize], &Mat<f64>, usize)> = parts.iter().map(|p| (&p.cols[..], &p.g, p.alpha_off)).collect();
+        let g = Self::check_restrained(n_macro, n_kernel, &views, kernel_owner, describe)?;
+        Self::new_checked(n_macro, parts, g)
     }
 
     /// Fails as [`CoarseProblem::new_described`] does when `G` is rank
@@ -405,35 +408,26 @@ impl CoarseProblem {
         parts: &[(&[usize], &Mat<f64>, usize)],
         kernel_owner: &[usize],
         describe: &dyn Fn(&[f64]) -> String,
-    ) -> Result<()> {
+    ) -> Result<RestrainedCoupling> {
         let g = kernel_coupling(n_macro, n_kernel, parts.iter().copied())?;
         if n_kernel > 0 {
             check_full_rank(&g, kernel_owner, describe)?;
         }
-        Ok(())
+        Ok(RestrainedCoupling(g))
     }
 
     /// [`CoarseProblem::new_described`] for contributions whose `G` passed
-    /// [`CoarseProblem::check_restrained`].
-    pub(crate) fn new_checked(n_macro: usize, n_kernel: usize, parts: &[CoarseContribution]) -> Result<CoarseProblem> {
-        Self::build(n_macro, n_kernel, parts, None)
-    }
-
-    /// The coarse problem, with `G`'s rank checked first where `check`
-    /// gives the owner of each kernel column and the mechanism's message.
-    fn build(
+    /// [`CoarseProblem::check_restrained`] (`g`, assembled there from the
+    /// same `G_E`, is not assembled again).
+    pub(crate) fn new_checked(
         n_macro: usize,
-        n_kernel: usize,
         parts: &[CoarseContribution],
-        check: Option<RankCheck<'_>>,
+        g: RestrainedCoupling,
     ) -> Result<CoarseProblem> {
         let t0 = std::time::Instant::now();
         let nf = n_macro;
-        let na = n_kernel;
-        let g = kernel_coupling(nf, na, parts.iter().map(|p| (&p.cols[..], &p.g, p.alpha_off)))?;
-        if let (true, Some((kernel_owner, describe))) = (na > 0, check) {
-            check_full_rank(&g, kernel_owner, describe)?;
-        }
+        let g = g.0;
+        let na = g.ncols();
 
         // Exact L (symmetrised) and the augmented, regularised L_γ, on one
         // pattern.

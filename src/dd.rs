@@ -1477,10 +1477,9 @@ impl DdSolver {
             };
             let views: Vec<(&[usize], &Mat<f64>, usize)> =
                 g_parts.iter().map(|(c, g, off)| (&c[..], g, *off)).collect();
-            seam.agree(CoarseProblem::check_restrained(
+            let g = seam.agree(CoarseProblem::check_restrained(
                 n_macro, n_alpha, &views, &owner, &describe,
             ))?;
-            drop(views);
             let local_blocks: Vec<Mat<f64>> = subs
                 .par_iter_mut()
                 .zip(early.into_par_iter())
@@ -1551,7 +1550,7 @@ impl DdSolver {
                 .zip(blocks)
                 .map(|((cols, g, alpha_off), l)| CoarseContribution { cols, l, g, alpha_off })
                 .collect();
-            coarse_parts = Some((parts, n_alpha));
+            coarse_parts = Some((parts, g));
         }
         // The coarse problem's factorizations have serial stretches; cg's
         // interior factors and deluxe blocks (the subdomains' own work, no
@@ -1575,10 +1574,10 @@ impl DdSolver {
                 face_blocks,
             });
         }
-        let build_coarse = || {
-            coarse_parts.as_ref().map(|(parts, n_alpha)| {
+        let build_coarse = move || {
+            coarse_parts.map(|(parts, g)| {
                 let t = Instant::now();
-                let built = CoarseProblem::new_checked(n_macro, *n_alpha, parts);
+                let built = CoarseProblem::new_checked(n_macro, &parts, g);
                 (built, t.elapsed().as_secs_f64())
             })
         };
@@ -1588,7 +1587,6 @@ impl DdSolver {
         };
         let coarse_start = t_coarse.elapsed().as_secs_f64();
         let (built, prepared) = rayon::join(build_coarse, prepare);
-        drop(coarse_parts);
         let mut coarse_own_s = coarse_start;
         if let Some((built, s)) = built {
             coarse_own_s += s;
