@@ -385,27 +385,30 @@ fn an_error_on_one_rank_ends_every_rank_alike() {
         "{expected}"
     );
     let path = write_scene(&scene, "tensegrity");
+    ends_every_rank_alike(&path, Method::Multilevel, 4, 3, &expected);
+}
+
+/// `mpirun -np np nsdd solve path` with `method` on `n` subdomains ends
+/// without hanging, every rank with the status of the threaded error
+/// `expected` (mpirun reports the first non-zero one: 3 for a mechanism or
+/// an indefinite subdomain, docs: CLI exit codes), and rank 0 alone prints
+/// the message, the threaded one.
+fn ends_every_rank_alike(path: &Path, method: Method, n: usize, np: usize, expected: &nsdd::error::Error) {
     let t = Instant::now();
     let o = mpirun(
-        3,
+        np,
         &[
             "solve",
             path.to_str().unwrap(),
             "--method",
-            "multilevel",
+            method.name(),
             "--subdomains",
-            "4",
+            &n.to_string(),
         ],
     );
     assert!(t.elapsed() < Duration::from_secs(60), "no hang");
     let stderr = String::from_utf8_lossy(&o.stderr);
-    // Every rank exits with the error's status (mpirun reports the first
-    // non-zero one); rank 0 alone prints the message, the threaded one.
-    assert_eq!(
-        o.status.code(),
-        Some(3), // report::exit_code of IndefiniteSubdomain (docs: CLI exit codes)
-        "{stderr}"
-    );
+    assert_eq!(o.status.code(), Some(3), "{stderr}");
     assert_eq!(stderr.matches("error: ").count(), 1, "{stderr}");
     assert!(stderr.contains(&format!("error: {expected}")), "{stderr}");
 }
@@ -427,14 +430,5 @@ fn a_mechanism_found_by_the_coarse_rank_check_ends_every_rank_alike() {
         expected.to_string().contains("is not restrained by its interfaces"),
         "{expected}"
     );
-    let t = Instant::now();
-    let o = mpirun(
-        2,
-        &["solve", path.to_str().unwrap(), "--method", "cg", "--subdomains", "2"],
-    );
-    assert!(t.elapsed() < Duration::from_secs(60), "no hang");
-    let stderr = String::from_utf8_lossy(&o.stderr);
-    assert_eq!(o.status.code(), Some(3), "{stderr}");
-    assert_eq!(stderr.matches("error: ").count(), 1, "{stderr}");
-    assert!(stderr.contains("is not restrained by its interfaces"), "{stderr}");
+    ends_every_rank_alike(&path, Method::Cg, 2, 2, &expected);
 }
