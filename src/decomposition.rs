@@ -187,6 +187,17 @@ pub struct Decomposition {
     pub entry_lo_local: Vec<u32>,
     /// Local dof of each entry in its `hi` subdomain.
     pub entry_hi_local: Vec<u32>,
+    /// The merges that made this decomposition from the partition first
+    /// asked for, in order ([`Decomposition::merge`]).
+    pub merged: Vec<Merge>,
+}
+
+/// One subdomain merged into a neighbour by [`Decomposition::merge`]; the
+/// ids are those of the decomposition the merge was made on.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Merge {
+    pub subdomain: usize,
+    pub into: usize,
 }
 
 /// Interface quality figures (the `nsdd partition` report).
@@ -324,7 +335,63 @@ impl Decomposition {
             entry_dof,
             entry_lo_local,
             entry_hi_local,
+            merged: Vec::new(),
         }
+    }
+
+    /// The decomposition with subdomain `s` merged into a neighbour: of
+    /// those holding elements at node `near` (where the set-up met the
+    /// trouble), the one with the most there; else, or without `near`, the
+    /// one `s` shares the most interface entries with (the lower id on a
+    /// tie). `None` when `s` has no neighbour. The other subdomains keep
+    /// their elements; ids above `s` move down by one. No weak-node repair
+    /// follows: a merge only adds elements around the nodes it touches.
+    ///
+    /// A set-up meets a subdomain that is indefinite where the structure
+    /// is not (compressed struts cut off from the cables that stabilise
+    /// them) and retries on the merged decomposition: the union holds
+    /// those cables, and a single subdomain is the whole structure.
+    pub fn merge(&self, model: &Model, s: usize, near: Option<usize>) -> Option<Decomposition> {
+        let neighbours: Vec<(usize, usize)> = self
+            .interfaces
+            .iter()
+            .filter_map(|it| match (it.lo == s, it.hi == s) {
+                (true, _) => Some((it.hi, it.len())),
+                (_, true) => Some((it.lo, it.len())),
+                _ => None,
+            })
+            .collect();
+        let mut at_node = vec![0usize; self.len()];
+        if let Some(n) = near {
+            for (e, el) in model.elements.iter().enumerate() {
+                if el.a == n || el.b == n {
+                    at_node[self.partition.part_of[e]] += 1;
+                }
+            }
+        }
+        // Most elements at the node first, then the largest interface.
+        let into = neighbours
+            .iter()
+            .max_by(|a, b| (at_node[a.0], a.1).cmp(&(at_node[b.0], b.1)).then(b.0.cmp(&a.0)))?
+            .0;
+        let part_of = self
+            .partition
+            .part_of
+            .iter()
+            .map(|&p| {
+                let p = if p == s { into } else { p };
+                if p > s {
+                    p - 1
+                } else {
+                    p
+                }
+            })
+            .collect::<Vec<_>>();
+        let partition = Partition::from_user(model, &part_of).ok()?;
+        let mut dec = Decomposition::new(model, partition);
+        dec.merged = self.merged.clone();
+        dec.merged.push(Merge { subdomain: s, into });
+        Some(dec)
     }
 
     /// Number of subdomains.

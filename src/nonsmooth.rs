@@ -312,6 +312,9 @@ pub struct NonsmoothCg {
     /// tried on the others too: only for a set that settled on a softened
     /// step (see [`is_structural_mechanism`]).
     retry_mechanisms: bool,
+    /// Whether a subdomain indefinite on its own is merged into a
+    /// neighbour and the set tried again ([`NonsmoothCg::set_merging`]).
+    merging: bool,
 }
 
 /// Operators of the previous set-up by [`OpKey`] while the next one is
@@ -465,8 +468,9 @@ fn set_failure(model: &Model, slack: &[bool], e: Error) -> Error {
                 message: format!(
                     "{message}, in the structure without its {} slack cables: compressed elements with \
                      geometric stiffness can make a subdomain indefinite where the whole structure is not \
-                     (`multilevel`, whose subdomains keep their slack cables' stiffness, `direct`, or fewer \
-                     subdomains may solve it)",
+                     (`multilevel`, whose subdomains keep their slack cables' stiffness, `direct`, fewer \
+                     subdomains or nsdd's own partition, which merges such a subdomain into a neighbour, may \
+                     solve it)",
                     slack.iter().filter(|&&s| s).count()
                 ),
             }
@@ -635,7 +639,33 @@ impl NonsmoothCg {
             },
             unsettled_steps: UNSETTLED_STEPS,
             retry_mechanisms: false,
+            merging: false,
         })
+    }
+
+    /// With `on`, a set-up that meets a subdomain indefinite on its own
+    /// merges it into a neighbour ([`Decomposition::merge`]) and tries the
+    /// set again, on the merged decomposition from then on: at the first
+    /// set (every cable taut), and for a later set once it is the one the
+    /// solve settles on (until then the softened step guides it, as
+    /// without merging). Off by default: the decomposition is the
+    /// caller's. [`crate::solve::solve`] turns it on for a structure with
+    /// compressed struts on nsdd's own partition.
+    pub fn set_merging(&mut self, on: bool) {
+        self.merging = on;
+    }
+
+    /// Merges the subdomain `e` names, if merging is on and `e` is an
+    /// indefinite subdomain with a neighbour; the next set-up starts over.
+    fn merge_for(&mut self, model: &Model, e: &Error) -> bool {
+        let merged = crate::solve::merged_for(self.merging, model, &self.dec, e, self.pool.placement.ranks());
+        let Some(dec) = merged else { return false };
+        if std::env::var_os("NSDD_NS_DEBUG").is_some() {
+            eprintln!("   merging: {e}; {} subdomains now", dec.len());
+        }
+        self.dec = dec;
+        self.current = None;
+        true
     }
 
     /// Sets the outer steps a solve may make without progress (default
@@ -870,6 +900,12 @@ impl NonsmoothCg {
                     setups += new as usize;
                     false
                 }
+                // Every cable taut: the structure is the one the user gave,
+                // so a subdomain indefinite on its own is the partition's.
+                Err(e) if !slack.contains(&true) && self.merge_for(model, &e) => {
+                    outer -= 1;
+                    continue;
+                }
                 // Removing cables can leave a subdomain with a mechanism
                 // whose round-off pivot reads as indefinite: both are what
                 // the softened step is for. If the softened set-up fails
@@ -883,7 +919,12 @@ impl NonsmoothCg {
                     match self.ensure_solver(model, &slack, true) {
                         Ok(new) => setups += new as usize,
                         Err(Error::Mechanism(_) | Error::IndefiniteSubdomain { .. }) => {
-                            return Err(failure.take().expect("set above"))
+                            let failure = failure.take().expect("set above");
+                            if self.merge_for(model, &failure) {
+                                outer -= 1;
+                                continue;
+                            }
+                            return Err(failure);
                         }
                         Err(e) => return Err(e),
                     }
@@ -1079,7 +1120,12 @@ impl NonsmoothCg {
                         violation = 0.0;
                         continue;
                     }
-                    return Err(failure.take().expect("a softened step follows a failed set-up"));
+                    let failure = failure.take().expect("a softened step follows a failed set-up");
+                    if self.merge_for(model, &failure) {
+                        violation = 0.0;
+                        continue;
+                    }
+                    return Err(failure);
                 }
                 let mut elongations = self.local_elongations(model, &u);
                 let mut u = u;

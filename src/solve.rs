@@ -113,6 +113,33 @@ fn interface_dofs(dec: &Decomposition, n_free: usize) -> usize {
 fn subdomain_notes(model: &Model, scene: &Scene, opts: &SolveOptions, dec: &Decomposition) -> Vec<String> {
     let mut notes = Vec::new();
     let n = dec.len();
+    if !dec.merged.is_empty() {
+        let k = dec.merged.len();
+        let pairs: Vec<String> = dec
+            .merged
+            .iter()
+            .take(8)
+            .map(|m| format!("{} into {}", m.subdomain, m.into))
+            .collect();
+        // Down to one subdomain the method ran as a slower direct solve.
+        let (warning, whole) = if n == 1 {
+            (
+                WARNING_PREFIX,
+                ": one subdomain is left, the whole structure, and `direct` solves it faster",
+            )
+        } else {
+            ("", "")
+        };
+        notes.push(format!(
+            "{warning}subdomains: {n}, not the {} partitioned: {k} merge{} ({}{}; ids as they were at each merge) \
+             of a subdomain indefinite on its own (compressed struts cut off from the cables that hold them) into \
+             its neighbour{whole}",
+            n + k,
+            if k == 1 { "" } else { "s" },
+            pairs.join(", "),
+            if k > 8 { ", ..." } else { "" }
+        ));
+    }
     if opts.subdomains == 0 && scene.elements.subdomain.is_empty() {
         notes.push(format!(
             "subdomains: {n}, chosen automatically from {} free dofs, {} elements and {} threads",
@@ -135,6 +162,43 @@ fn subdomain_notes(model: &Model, scene: &Scene, opts: &SolveOptions, dec: &Deco
     notes
 }
 
+/// Whether a set-up of `model` on `scene`'s partition merges a subdomain
+/// that turns out indefinite into a neighbour and tries again
+/// ([`Decomposition::merge`]): when the structure has compressed struts
+/// (geometric stiffness, which makes a subdomain indefinite where the
+/// whole structure is not) and the partition is nsdd's own. A partition
+/// given in `elements.subdomain` is the user's to change.
+pub(crate) fn merges_indefinite(model: &Model, scene: &Scene) -> bool {
+    scene.elements.subdomain.is_empty() && model.elements.iter().any(|el| el.geo < 0.0)
+}
+
+/// The decomposition to try after the set-up error `e` on `dec`, if
+/// `merging` and `e` names an indefinite subdomain that has a neighbour,
+/// and the merge leaves a subdomain for each of the `ranks` processes.
+/// (Under MPI every rank gets the same error, so all merge alike.)
+pub(crate) fn merged_for(
+    merging: bool,
+    model: &Model,
+    dec: &Decomposition,
+    e: &Error,
+    ranks: usize,
+) -> Option<Decomposition> {
+    match e {
+        Error::IndefiniteSubdomain { subdomain, message } if merging && dec.len() > ranks => {
+            dec.merge(model, *subdomain, node_named(message))
+        }
+        _ => None,
+    }
+}
+
+/// The node an error message names first ("node 12 component x", as the
+/// subdomain set-up names its dofs).
+fn node_named(message: &str) -> Option<usize> {
+    let at = message.find("node ")? + "node ".len();
+    let digits: String = message[at..].chars().take_while(|c| c.is_ascii_digit()).collect();
+    digits.parse().ok()
+}
+
 /// Sets up the solver for `model` (factorizations, coarse problem).
 pub fn prepare(model: &Model, scene: &Scene, opts: &SolveOptions) -> Result<Prepared> {
     prepare_in(model, scene, opts, Placement::Process)
@@ -149,7 +213,7 @@ pub fn prepare_in(model: &Model, scene: &Scene, opts: &SolveOptions, placement: 
         Method::Cg if !model.cables.is_empty() => {
             opts.validate()?;
             let dec = decompose_with(model, scene, opts.subdomains, opts.partitioner)?;
-            Prepared::NonsmoothCg(Box::new(NonsmoothCg::new_in(
+            let mut ns = NonsmoothCg::new_in(
                 model,
                 dec,
                 NonsmoothOptions {
@@ -163,12 +227,22 @@ pub fn prepare_in(model: &Model, scene: &Scene, opts: &SolveOptions, placement: 
                     ordering: opts.ordering,
                 },
                 placement,
-            )?))
+            )?;
+            ns.set_merging(merges_indefinite(model, scene));
+            Prepared::NonsmoothCg(Box::new(ns))
         }
         Method::Monolevel | Method::Multilevel | Method::Cg => {
-            let dec = decompose_with(model, scene, opts.subdomains, opts.partitioner)?;
-            let dd = DdSolver::new_in(model, &dec, DdOptions::from_settings(opts)?, placement)?;
-            Prepared::Dd(Box::new(dd), dec)
+            let mut dec = decompose_with(model, scene, opts.subdomains, opts.partitioner)?;
+            let merging = merges_indefinite(model, scene);
+            loop {
+                match DdSolver::new_in(model, &dec, DdOptions::from_settings(opts)?, placement.clone()) {
+                    Ok(dd) => break Prepared::Dd(Box::new(dd), dec),
+                    Err(e) => match merged_for(merging, model, &dec, &e, placement.ranks()) {
+                        Some(m) => dec = m,
+                        None => return Err(e),
+                    },
+                }
+            }
         }
     })
 }
@@ -405,21 +479,24 @@ pub fn solve_in(
 }
 
 /// An indefinite subdomain of a structure with compressed struts (geometric
-/// stiffness) is most likely a partition that separates struts from the
-/// cables that stabilise them, not an indefinite structure: the error says
-/// what may solve it, unless it already does (a nonsmooth step's message).
+/// stiffness) on the user's partition (nsdd's own merges it away,
+/// [`merges_indefinite`]) is most likely a partition that separates struts
+/// from the cables that stabilise them, not an indefinite structure: the
+/// error says what may solve it, unless it already does (a nonsmooth
+/// step's message).
 fn with_strut_hint(scene: &Scene, e: Error) -> Error {
     match e {
         Error::IndefiniteSubdomain { subdomain, message }
             if !message.contains("`direct`")
+                && !scene.elements.subdomain.is_empty()
                 && Model::from_scene(scene).is_ok_and(|m| m.elements.iter().any(|el| el.geo < 0.0)) =>
         {
             Error::IndefiniteSubdomain {
                 subdomain,
                 message: format!(
                     "{message}; with compressed struts a subdomain can be indefinite where the structure is not: \
-                     `direct`, fewer subdomains or another partition (`partitioner = \"metis\"`, \
-                     `elements.subdomain`) may solve it"
+                     `direct`, fewer subdomains or nsdd's own partition (without `elements.subdomain`: it merges \
+                     such a subdomain into a neighbour) may solve it"
                 ),
             }
         }
@@ -675,6 +752,47 @@ fn solve_here(
 mod tests {
     use super::*;
     use crate::generate::{tower, TowerParams};
+
+    /// The merge is steered by the node a subdomain's factorization names:
+    /// the message of a real indefinite subdomain parses to a node of it.
+    #[test]
+    fn an_indefinite_subdomain_names_a_node_of_its_own() {
+        use crate::generate::{tensegrity, TensegrityParams};
+        let scene = tensegrity(&TensegrityParams {
+            nx: 3,
+            ny: 3,
+            unilateral: false,
+            ..Default::default()
+        });
+        let model = Model::from_scene(&scene).unwrap();
+        let dec = Decomposition::new(&model, Partition::bisection(&model, 4).unwrap());
+        let opts = SolveOptions {
+            method: Method::Cg,
+            ..Default::default()
+        };
+        match DdSolver::new(&model, &dec, DdOptions::from_settings(&opts).unwrap()) {
+            Err(e @ Error::IndefiniteSubdomain { .. }) => {
+                let Error::IndefiniteSubdomain { subdomain, message } = &e else {
+                    unreachable!()
+                };
+                let node = node_named(message).unwrap_or_else(|| panic!("{message}"));
+                let own = dec.partition.elements_of[*subdomain]
+                    .iter()
+                    .any(|&el| model.elements[el].a == node || model.elements[el].b == node);
+                assert!(own, "node {node} of {message}");
+                let merged = merged_for(true, &model, &dec, &e, 1).expect("a neighbour");
+                assert_eq!(merged.len(), 3);
+                assert!(merged_for(false, &model, &dec, &e, 1).is_none());
+                assert!(
+                    merged_for(true, &model, &dec, &e, 4).is_none(),
+                    "one subdomain per rank"
+                );
+            }
+            other => panic!("expected an indefinite subdomain: {:?}", other.err()),
+        }
+        assert_eq!(node_named("at node 17 component y"), Some(17));
+        assert_eq!(node_named("no node here"), None);
+    }
 
     /// The direct solve's tensions pass the equilibrium check at 1e-10 (6e-12);
     /// one bar's elongation off by 1e-6 of itself (tensions 1e-7 off

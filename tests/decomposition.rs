@@ -1102,3 +1102,57 @@ fn partition_repair_keeps_struts_ends_positive_definite() {
         assert!(repaired <= left, "{parts} parts: {raw} -> {repaired} holders");
     }
 }
+
+/// `Decomposition::merge` moves every element of one subdomain into a
+/// neighbour and nothing else: the neighbour holding the most elements at
+/// the node given, else the one sharing the largest interface; ids above
+/// the merged one move down by one, and the merge is recorded.
+#[test]
+fn merge_moves_one_subdomain_into_the_chosen_neighbour() {
+    let model = grid_model(8);
+    let dec = Decomposition::new(&model, Partition::bisection(&model, 4).unwrap());
+    let s = 1;
+    let shared = |t: usize| -> usize {
+        dec.interfaces
+            .iter()
+            .filter(|it| (it.lo, it.hi) == (s.min(t), s.max(t)))
+            .map(|it| it.len())
+            .sum()
+    };
+    let neighbours: Vec<usize> = (0..4).filter(|&t| t != s && shared(t) > 0).collect();
+    assert!(neighbours.len() >= 2, "{neighbours:?}");
+    let renumbered = |p: usize| if p > s { p - 1 } else { p };
+    let check = |merged: &Decomposition, into: usize| {
+        assert_eq!(merged.len(), 3);
+        assert_eq!(merged.merged, vec![nsdd::decomposition::Merge { subdomain: s, into }]);
+        for (e, &p) in dec.partition.part_of.iter().enumerate() {
+            let expected = renumbered(if p == s { into } else { p });
+            assert_eq!(merged.partition.part_of[e], expected, "element {e}");
+        }
+    };
+    // Without a node: the largest interface (the lower id on a tie).
+    let widest = *neighbours
+        .iter()
+        .max_by(|&&a, &&b| shared(a).cmp(&shared(b)).then(b.cmp(&a)))
+        .unwrap();
+    check(&dec.merge(&model, s, None).unwrap(), widest);
+    // At a node of the other neighbour's: that one, whatever its interface.
+    let other = *neighbours.iter().find(|&&t| t != widest).unwrap();
+    let node = (0..model.coords.len())
+        .find(|&n| {
+            let at = |t: usize| {
+                model
+                    .elements
+                    .iter()
+                    .enumerate()
+                    .filter(|(e, el)| (el.a == n || el.b == n) && dec.partition.part_of[*e] == t)
+                    .count()
+            };
+            at(s) > 0 && at(other) > at(widest)
+        })
+        .expect("a node of s shared with the other neighbour");
+    check(&dec.merge(&model, s, Some(node)).unwrap(), other);
+    // One subdomain has no neighbour to merge into.
+    let whole = Decomposition::new(&model, Partition::bisection(&model, 1).unwrap());
+    assert!(whole.merge(&model, 0, None).is_none());
+}

@@ -213,13 +213,36 @@ fn tensegrity_slack_cables_keep_their_geometric_stiffness() {
     }
 }
 
+/// The scene with nsdd's own partition into `n` subdomains written into
+/// `elements.subdomain`: the same subdomains, but the user's, which the
+/// set-up does not change.
+fn with_user_partition(scene: &Scene, n: usize) -> Scene {
+    let model = Model::from_scene(scene).unwrap();
+    let mut scene = scene.clone();
+    scene.elements.subdomain = nsdd::partition::Partition::bisection(&model, n).unwrap().part_of;
+    scene
+}
+
+/// The notes of a result that say subdomains were merged; one is a
+/// warning when a single subdomain is left (a slower direct solve).
+fn merge_notes(r: &SolveResult) -> Vec<&String> {
+    let notes: Vec<&String> = r.notes.iter().filter(|n| n.contains("merge")).collect();
+    for n in &notes {
+        assert_eq!(n.starts_with("warning: "), r.subdomains == 1, "{n}");
+    }
+    notes
+}
+
 /// With geometric stiffness, 16 subdomains of the bundled tensegrity grid
 /// leave one holding compressed struts only: its stiffness is indefinite.
-/// That is the error, naming the subdomain; no cable is slack, so it is not
-/// dressed up as a mechanism of a slack set (it was: "when its 0 slack
-/// cables are removed (elements )"). It says what may solve it.
+/// On the user's partition that is the error, naming the subdomain; no
+/// cable is slack, so it is not dressed up as a mechanism of a slack set
+/// (it was: "when its 0 slack cables are removed (elements )"). It says
+/// what may solve it. On nsdd's own partition the subdomain is merged into
+/// a neighbour until the set-up holds, the result says so, and it is the
+/// direct solver's.
 #[test]
-fn an_indefinite_subdomain_with_no_slack_cable_is_reported_as_such() {
+fn an_indefinite_subdomain_with_no_slack_cable_is_merged_or_reported() {
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/tensegrity-2x2.toml");
     let scene = Scene::load(&path).unwrap();
     let opts = SolveOptions {
@@ -227,7 +250,7 @@ fn an_indefinite_subdomain_with_no_slack_cable_is_reported_as_such() {
         subdomains: 16,
         ..Default::default()
     };
-    match solve(&scene, &opts) {
+    match solve(&with_user_partition(&scene, 16), &opts) {
         Err(Error::IndefiniteSubdomain { subdomain, message }) => {
             assert!(subdomain < 16);
             assert!(
@@ -235,20 +258,35 @@ fn an_indefinite_subdomain_with_no_slack_cable_is_reported_as_such() {
                 "{message}"
             );
             assert!(
-                message.contains("`direct`") && message.contains("metis") && message.contains("fewer subdomains"),
+                message.contains("`direct`")
+                    && message.contains("nsdd's own partition")
+                    && message.contains("fewer subdomains"),
                 "{message}"
             );
         }
         other => panic!("{:?}", other.map(|r| r.status)),
     }
+    let r = check(&scene, 16, 1e-8);
+    assert!(r.subdomains < 16 && r.subdomains >= 1, "{}", r.subdomains);
+    let notes = merge_notes(&r);
+    assert_eq!(notes.len(), 1, "{:?}", r.notes);
+    assert!(
+        notes[0].contains(&format!("subdomains: {}, not the 16 partitioned", r.subdomains)),
+        "{}",
+        notes[0]
+    );
+    // `element_subdomain` is the partition solved on.
+    assert_eq!(r.element_subdomain.iter().max().map(|m| m + 1), Some(r.subdomains));
 }
 
 /// A slack set that leaves a subdomain indefinite through compressed
 /// struts is that subdomain's error, not a mechanism of the structure:
 /// the direct solver solves this tensegrity grid (it used to read "the
 /// structure becomes a mechanism when its 28 slack cables are removed").
+/// On nsdd's own partition the subdomain is merged once the set is the
+/// final one, and the answer is the direct solver's.
 #[test]
-fn a_subdomain_made_indefinite_by_struts_under_a_slack_set_is_not_called_a_mechanism() {
+fn a_subdomain_made_indefinite_by_struts_under_a_slack_set_is_merged_or_reported() {
     let scene = tensegrity(&TensegrityParams {
         nx: 3,
         ny: 3,
@@ -256,7 +294,7 @@ fn a_subdomain_made_indefinite_by_struts_under_a_slack_set_is_not_called_a_mecha
         ..Default::default()
     });
     assert!(solve(&scene, &opts(Method::Direct, 1, 1e-9)).is_ok());
-    match solve(&scene, &opts(Method::Cg, 2, 1e-9)) {
+    match solve(&with_user_partition(&scene, 2), &opts(Method::Cg, 2, 1e-9)) {
         Err(Error::IndefiniteSubdomain { subdomain, message }) => {
             assert!(subdomain < 2);
             assert!(
@@ -265,6 +303,48 @@ fn a_subdomain_made_indefinite_by_struts_under_a_slack_set_is_not_called_a_mecha
             );
         }
         other => panic!("{:?}", other.map(|r| r.status)),
+    }
+    let r = check(&scene, 2, 1e-9);
+    assert!(r.slack.iter().any(|&s| s));
+    assert_eq!(merge_notes(&r).len(), 1, "{:?}", r.notes);
+}
+
+/// The tensegrity grid cut in 2, 4 and 8: cg and `multilevel` (whose
+/// subdomains keep their whole stiffness as cables go slack) both give the
+/// direct solver's answer. Where a subdomain is indefinite on its own
+/// (cut off from the cables that stabilise its struts, at the first set or
+/// under the final slack set) it is merged into a neighbour; before,
+/// cg failed with an indefinite subdomain on 4 and 8, `multilevel` on 8.
+#[test]
+fn the_tensegrity_grid_is_solved_on_any_subdomain_count() {
+    let scene = tensegrity(&TensegrityParams {
+        nx: 10,
+        ny: 10,
+        load: 1.0,
+        ..Default::default()
+    });
+    let tol = 1e-8;
+    let direct = solve(&scene, &opts(Method::Direct, 1, tol)).unwrap();
+    assert!(direct.slack.iter().any(|&s| s));
+    for n in [2, 4, 8] {
+        let r = check(&scene, n, tol);
+        assert_eq!(r.slack, direct.slack, "cg on {n}: slack set");
+        assert_eq!(
+            merge_notes(&r).is_empty(),
+            r.subdomains == n,
+            "cg on {n}: {:?}",
+            r.notes
+        );
+        let r = solve(&scene, &opts(Method::Multilevel, n, tol)).unwrap();
+        assert!(r.converged, "multilevel on {n}: {:?}", r.status);
+        let eu = rel_err(&flat(&r.displacements), &flat(&direct.displacements));
+        assert!(eu <= 10.0 * tol, "multilevel on {n}: {eu:.1e}");
+        assert_eq!(
+            merge_notes(&r).is_empty(),
+            r.subdomains == n,
+            "multilevel on {n}: {:?}",
+            r.notes
+        );
     }
 }
 
@@ -302,49 +382,6 @@ fn a_loose_solve_that_stalls_is_not_accepted_as_the_answer() {
             !r.converged || (et <= 10.0 * tol && last <= tol),
             "{scaling:?}: claims {tol:e} with its indicator at {last:.1e} and tensions {et:.1e} off"
         );
-    }
-}
-
-/// Where cg's outer steps meet a subdomain that the slack set leaves
-/// indefinite, `multilevel` (whose subdomains keep their whole stiffness as
-/// cables go slack) still solves the grid wherever the taut subdomains are
-/// semi-definite: the README's statement of the limit. On 2 subdomains cg
-/// solves it too since the partition's repair keeps a strut's end with
-/// enough of its cables (a subdomain holding a strut's end without them was
-/// indefinite there); on 4 it still meets an indefinite subdomain.
-#[test]
-fn multilevel_solves_the_tensegrity_grid_where_cg_meets_an_indefinite_subdomain() {
-    let scene = tensegrity(&TensegrityParams {
-        nx: 10,
-        ny: 10,
-        load: 1.0,
-        ..Default::default()
-    });
-    let tol = 1e-8;
-    let direct = solve(&scene, &opts(Method::Direct, 1, tol)).unwrap();
-    assert!(direct.slack.iter().any(|&s| s));
-    let r = solve(&scene, &opts(Method::Cg, 2, tol)).unwrap();
-    assert!(r.converged, "cg on 2: {:?}", r.status);
-    let eu = rel_err(&flat(&r.displacements), &flat(&direct.displacements));
-    let et = rel_err(&r.tensions, &direct.tensions);
-    assert!(eu <= 10.0 * tol && et <= 10.0 * tol, "cg on 2: {eu:.1e} {et:.1e}");
-    assert_eq!(r.slack, direct.slack, "cg on 2: slack set");
-    for n in [2, 4] {
-        if n == 4 {
-            match solve(&scene, &opts(Method::Cg, n, tol)) {
-                Err(Error::IndefiniteSubdomain { message, .. }) => {
-                    assert!(
-                        message.contains("slack cables") && message.contains("`multilevel`"),
-                        "{message}"
-                    )
-                }
-                other => panic!("cg on {n}: {:?}", other.map(|r| r.status)),
-            }
-        }
-        let r = solve(&scene, &opts(Method::Multilevel, n, tol)).unwrap();
-        assert!(r.converged, "multilevel on {n}: {:?}", r.status);
-        let eu = rel_err(&flat(&r.displacements), &flat(&direct.displacements));
-        assert!(eu <= 10.0 * tol, "multilevel on {n}: {eu:.1e}");
     }
 }
 
