@@ -779,6 +779,17 @@ enum NsddStatus nsdd_result_slack(const struct NsddResult *result, uint8_t *out,
 enum NsddStatus nsdd_result_iterations(const struct NsddResult *result, size_t *out);
 
 /**
+ * Subdomains the solve ran on, into `*out`: 1 for `direct`, else the
+ * count asked for unless the set-up merged a subdomain that was
+ * indefinite on its own into a neighbour (compressed struts on nsdd's own
+ * partition; the result's notes list the merges).
+ *
+ * # Safety
+ * `result` must be a live result handle; `out` must point to a writable `size_t`.
+ */
+enum NsddStatus nsdd_result_subdomains(const struct NsddResult *result, size_t *out);
+
+/**
  * Whether every solve reached the tolerance, into `*out`.
  *
  * # Safety

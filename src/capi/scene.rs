@@ -859,6 +859,21 @@ pub unsafe extern "C" fn nsdd_result_iterations(result: *const NsddResult, out: 
     })
 }
 
+/// Subdomains the solve ran on, into `*out`: 1 for `direct`, else the
+/// count asked for unless the set-up merged a subdomain that was
+/// indefinite on its own into a neighbour (compressed struts on nsdd's own
+/// partition; the result's notes list the merges).
+///
+/// # Safety
+/// `result` must be a live result handle; `out` must point to a writable `size_t`.
+#[unsafe(no_mangle)]
+pub unsafe extern "C" fn nsdd_result_subdomains(result: *const NsddResult, out: *mut usize) -> NsddStatus {
+    ffi_guard(|| {
+        let r = unsafe { handle(result, "result")? };
+        unsafe { write_out(out, "out", r.result.subdomains) }
+    })
+}
+
 /// Whether every solve reached the tolerance, into `*out`.
 ///
 /// # Safety
