@@ -339,19 +339,12 @@ impl Decomposition {
         }
     }
 
-    /// The decomposition with subdomain `s` merged into a neighbour: of
-    /// those holding elements at node `near` (where the set-up met the
-    /// trouble), the one with the most there; else, or without `near`, the
-    /// one `s` shares the most interface entries with (the lower id on a
-    /// tie). `None` when `s` has no neighbour. The other subdomains keep
-    /// their elements; ids above `s` move down by one. No weak-node repair
-    /// follows: a merge only adds elements around the nodes it touches.
-    ///
-    /// A set-up meets a subdomain that is indefinite where the structure
-    /// is not (compressed struts cut off from the cables that stabilise
-    /// them) and retries on the merged decomposition: the union holds
-    /// those cables, and a single subdomain is the whole structure.
-    pub fn merge(&self, model: &Model, s: usize, near: Option<usize>) -> Option<Decomposition> {
+    /// The neighbour subdomain `s` would be merged into: of those holding
+    /// elements at node `near` (where a set-up met trouble), the one with
+    /// the most there; else, or without `near`, the one `s` shares the
+    /// most interface entries with (the lower id on a tie). `None` when `s`
+    /// has no neighbour.
+    pub fn merge_target(&self, model: &Model, s: usize, near: Option<usize>) -> Option<usize> {
         let neighbours: Vec<(usize, usize)> = self
             .interfaces
             .iter()
@@ -370,28 +363,67 @@ impl Decomposition {
             }
         }
         // Most elements at the node first, then the largest interface.
-        let into = neighbours
+        neighbours
             .iter()
-            .max_by(|a, b| (at_node[a.0], a.1).cmp(&(at_node[b.0], b.1)).then(b.0.cmp(&a.0)))?
-            .0;
-        let part_of = self
+            .max_by(|a, b| (at_node[a.0], a.1).cmp(&(at_node[b.0], b.1)).then(b.0.cmp(&a.0)))
+            .map(|&(t, _)| t)
+    }
+
+    /// The decomposition with each `Merge { subdomain, into }` of `merges`
+    /// (ids of this decomposition) applied at once: subdomains joined by
+    /// merges, directly or through others, become one, numbered in the
+    /// order of their lowest ids; the others keep their elements. No
+    /// weak-node repair follows: a merge only adds elements around the
+    /// nodes it touches. The merges that joined two subdomains not yet
+    /// joined are recorded after this one's (one per subdomain taken away).
+    ///
+    /// A set-up meets a subdomain that is indefinite where the structure
+    /// is not (compressed struts cut off from the cables that stabilise
+    /// them) and retries on the merged decomposition: the union holds
+    /// those cables, and a single subdomain is the whole structure.
+    pub fn merge_all(&self, model: &Model, merges: &[Merge]) -> Decomposition {
+        let n = self.len();
+        let mut root: Vec<usize> = (0..n).collect();
+        // Only the merges that join two subdomains not yet joined are
+        // recorded: each takes one subdomain away.
+        let mut made = Vec::with_capacity(merges.len());
+        for m in merges {
+            let (a, b) = (
+                crate::adaptive::find_root(&mut root, m.subdomain),
+                crate::adaptive::find_root(&mut root, m.into),
+            );
+            if a != b {
+                root[a.max(b)] = a.min(b);
+                made.push(*m);
+            }
+        }
+        // A component's root is its lowest id: number the roots in order.
+        let mut new_id = vec![usize::MAX; n];
+        let mut count = 0;
+        for p in 0..n {
+            if crate::adaptive::find_root(&mut root, p) == p {
+                new_id[p] = count;
+                count += 1;
+            }
+        }
+        let part_of: Vec<usize> = self
             .partition
             .part_of
             .iter()
-            .map(|&p| {
-                let p = if p == s { into } else { p };
-                if p > s {
-                    p - 1
-                } else {
-                    p
-                }
-            })
-            .collect::<Vec<_>>();
-        let partition = Partition::from_user(model, &part_of).ok()?;
+            .map(|&p| new_id[crate::adaptive::find_root(&mut root, p)])
+            .collect();
+        let partition = Partition::from_user(model, &part_of).expect("merged ids cover 0..count");
         let mut dec = Decomposition::new(model, partition);
         dec.merged = self.merged.clone();
-        dec.merged.push(Merge { subdomain: s, into });
-        Some(dec)
+        dec.merged.extend(made);
+        dec
+    }
+
+    /// [`Decomposition::merge_all`] of subdomain `s` into its
+    /// [`Decomposition::merge_target`]; `None` without a neighbour.
+    pub fn merge(&self, model: &Model, s: usize, near: Option<usize>) -> Option<Decomposition> {
+        let into = self.merge_target(model, s, near)?;
+        Some(self.merge_all(model, &[Merge { subdomain: s, into }]))
     }
 
     /// Number of subdomains.

@@ -644,21 +644,40 @@ impl NonsmoothCg {
     }
 
     /// With `on`, a set-up that meets a subdomain indefinite on its own
-    /// merges it into a neighbour ([`Decomposition::merge`]) and tries the
-    /// set again, on the merged decomposition from then on: at the first
-    /// set (every cable taut), and for a later set once it is the one the
-    /// solve settles on (until then the softened step guides it, as
-    /// without merging). Off by default: the decomposition is the
-    /// caller's. [`crate::solve::solve`] turns it on for a structure with
-    /// compressed struts on nsdd's own partition.
+    /// merges it into a neighbour ([`Decomposition::merge_target`]; in one
+    /// process with every other subdomain the set leaves indefinite) and
+    /// tries the set again, on the merged decomposition from then on: at
+    /// the first set (every cable taut), and for a later set once its
+    /// softened guide step fails too or it is the one the solve settles on
+    /// (until then the softened step guides it, as without merging). Off by
+    /// default: the decomposition is the caller's. [`crate::solve::solve`]
+    /// turns it on for a structure with compressed struts on nsdd's own
+    /// partition.
     pub fn set_merging(&mut self, on: bool) {
         self.merging = on;
     }
 
     /// Merges the subdomain `e` names, if merging is on and `e` is an
-    /// indefinite subdomain with a neighbour; the next set-up starts over.
-    fn merge_for(&mut self, model: &Model, e: &Error) -> bool {
-        let merged = crate::solve::merged_for(self.merging, model, &self.dec, e, self.pool.placement.ranks());
+    /// indefinite subdomain with a neighbour, and in one process every
+    /// other subdomain the set `slack`'s exact structure leaves indefinite
+    /// ([`crate::merging`]); the next set-up starts over.
+    fn merge_for(&mut self, model: &Model, slack: &[bool], e: &Error) -> bool {
+        let merged = if !self.merging {
+            None
+        } else if self.pool.placement.in_process() {
+            // The structure the exact set-up failed on: without the slack
+            // cables, on the restricted partition with its weak nodes
+            // repaired (the first one `build_step` tries); its subdomains
+            // are numbered as `self.dec`'s.
+            let reduced = match slack.contains(&true) {
+                true => reduced_problem(model, &self.dec, slack, true).ok(),
+                false => None,
+            };
+            let failed = reduced.as_ref().map(|(lin, dec, _)| (lin, dec));
+            crate::merging::merged_all_for(true, model, &self.dec, e, failed, self.opts.ordering)
+        } else {
+            crate::merging::merged_for(true, model, &self.dec, e, self.pool.placement.ranks())
+        };
         let Some(dec) = merged else { return false };
         if std::env::var_os("NSDD_NS_DEBUG").is_some() {
             eprintln!("   merging: {e}; {} subdomains now", dec.len());
@@ -902,7 +921,7 @@ impl NonsmoothCg {
                 }
                 // Every cable taut: the structure is the one the user gave,
                 // so a subdomain indefinite on its own is the partition's.
-                Err(e) if !slack.contains(&true) && self.merge_for(model, &e) => {
+                Err(e) if !slack.contains(&true) && self.merge_for(model, &slack, &e) => {
                     outer -= 1;
                     continue;
                 }
@@ -920,7 +939,7 @@ impl NonsmoothCg {
                         Ok(new) => setups += new as usize,
                         Err(Error::Mechanism(_) | Error::IndefiniteSubdomain { .. }) => {
                             let failure = failure.take().expect("set above");
-                            if self.merge_for(model, &failure) {
+                            if self.merge_for(model, &slack, &failure) {
                                 outer -= 1;
                                 continue;
                             }
@@ -1121,7 +1140,7 @@ impl NonsmoothCg {
                         continue;
                     }
                     let failure = failure.take().expect("a softened step follows a failed set-up");
-                    if self.merge_for(model, &failure) {
+                    if self.merge_for(model, &slack, &failure) {
                         violation = 0.0;
                         continue;
                     }

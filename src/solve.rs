@@ -34,6 +34,7 @@ use crate::decomposition::Decomposition;
 use crate::direct::DirectSolver;
 use crate::error::{Error, Result};
 use crate::factor::OrderingKind;
+use crate::merging::{merged_all_for, merged_for, merges_indefinite};
 use crate::model::Model;
 use crate::nonsmooth::{NonsmoothCg, NonsmoothOptions};
 use crate::outcome::{Outcome, Status};
@@ -162,43 +163,6 @@ fn subdomain_notes(model: &Model, scene: &Scene, opts: &SolveOptions, dec: &Deco
     notes
 }
 
-/// Whether a set-up of `model` on `scene`'s partition merges a subdomain
-/// that turns out indefinite into a neighbour and tries again
-/// ([`Decomposition::merge`]): when the structure has compressed struts
-/// (geometric stiffness, which makes a subdomain indefinite where the
-/// whole structure is not) and the partition is nsdd's own. A partition
-/// given in `elements.subdomain` is the user's to change.
-pub(crate) fn merges_indefinite(model: &Model, scene: &Scene) -> bool {
-    scene.elements.subdomain.is_empty() && model.elements.iter().any(|el| el.geo < 0.0)
-}
-
-/// The decomposition to try after the set-up error `e` on `dec`, if
-/// `merging` and `e` names an indefinite subdomain that has a neighbour,
-/// and the merge leaves a subdomain for each of the `ranks` processes.
-/// (Under MPI every rank gets the same error, so all merge alike.)
-pub(crate) fn merged_for(
-    merging: bool,
-    model: &Model,
-    dec: &Decomposition,
-    e: &Error,
-    ranks: usize,
-) -> Option<Decomposition> {
-    match e {
-        Error::IndefiniteSubdomain { subdomain, message } if merging && dec.len() > ranks => {
-            dec.merge(model, *subdomain, node_named(message))
-        }
-        _ => None,
-    }
-}
-
-/// The node an error message names first ("node 12 component x", as the
-/// subdomain set-up names its dofs).
-fn node_named(message: &str) -> Option<usize> {
-    let at = message.find("node ")? + "node ".len();
-    let digits: String = message[at..].chars().take_while(|c| c.is_ascii_digit()).collect();
-    digits.parse().ok()
-}
-
 /// Sets up the solver for `model` (factorizations, coarse problem).
 pub fn prepare(model: &Model, scene: &Scene, opts: &SolveOptions) -> Result<Prepared> {
     prepare_in(model, scene, opts, Placement::Process)
@@ -237,10 +201,17 @@ pub fn prepare_in(model: &Model, scene: &Scene, opts: &SolveOptions, placement: 
             loop {
                 match DdSolver::new_in(model, &dec, DdOptions::from_settings(opts)?, placement.clone()) {
                     Ok(dd) => break Prepared::Dd(Box::new(dd), dec),
-                    Err(e) => match merged_for(merging, model, &dec, &e, placement.ranks()) {
-                        Some(m) => dec = m,
-                        None => return Err(e),
-                    },
+                    Err(e) => {
+                        let merged = if placement.in_process() {
+                            merged_all_for(merging, model, &dec, &e, None, opts.ordering)
+                        } else {
+                            merged_for(merging, model, &dec, &e, placement.ranks())
+                        };
+                        match merged {
+                            Some(m) => dec = m,
+                            None => return Err(e),
+                        }
+                    }
                 }
             }
         }
@@ -480,7 +451,7 @@ pub fn solve_in(
 
 /// An indefinite subdomain of a structure with compressed struts (geometric
 /// stiffness) on the user's partition (nsdd's own merges it away,
-/// [`merges_indefinite`]) is most likely a partition that separates struts
+/// `crate::merging`) is most likely a partition that separates struts
 /// from the cables that stabilise them, not an indefinite structure: the
 /// error says what may solve it, unless it already does (a nonsmooth
 /// step's message).
@@ -752,47 +723,6 @@ fn solve_here(
 mod tests {
     use super::*;
     use crate::generate::{tower, TowerParams};
-
-    /// The merge is steered by the node a subdomain's factorization names:
-    /// the message of a real indefinite subdomain parses to a node of it.
-    #[test]
-    fn an_indefinite_subdomain_names_a_node_of_its_own() {
-        use crate::generate::{tensegrity, TensegrityParams};
-        let scene = tensegrity(&TensegrityParams {
-            nx: 3,
-            ny: 3,
-            unilateral: false,
-            ..Default::default()
-        });
-        let model = Model::from_scene(&scene).unwrap();
-        let dec = Decomposition::new(&model, Partition::bisection(&model, 4).unwrap());
-        let opts = SolveOptions {
-            method: Method::Cg,
-            ..Default::default()
-        };
-        match DdSolver::new(&model, &dec, DdOptions::from_settings(&opts).unwrap()) {
-            Err(e @ Error::IndefiniteSubdomain { .. }) => {
-                let Error::IndefiniteSubdomain { subdomain, message } = &e else {
-                    unreachable!()
-                };
-                let node = node_named(message).unwrap_or_else(|| panic!("{message}"));
-                let own = dec.partition.elements_of[*subdomain]
-                    .iter()
-                    .any(|&el| model.elements[el].a == node || model.elements[el].b == node);
-                assert!(own, "node {node} of {message}");
-                let merged = merged_for(true, &model, &dec, &e, 1).expect("a neighbour");
-                assert_eq!(merged.len(), 3);
-                assert!(merged_for(false, &model, &dec, &e, 1).is_none());
-                assert!(
-                    merged_for(true, &model, &dec, &e, 4).is_none(),
-                    "one subdomain per rank"
-                );
-            }
-            other => panic!("expected an indefinite subdomain: {:?}", other.err()),
-        }
-        assert_eq!(node_named("at node 17 component y"), Some(17));
-        assert_eq!(node_named("no node here"), None);
-    }
 
     /// The direct solve's tensions pass the equilibrium check at 1e-10 (6e-12);
     /// one bar's elongation off by 1e-6 of itself (tensions 1e-7 off
