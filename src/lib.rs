@@ -19,7 +19,7 @@ pub mod error;
 pub mod factor;
 pub mod generate;
 pub mod kernels;
-pub(crate) mod merging;
+pub mod merging;
 pub mod method;
 pub mod model;
 pub mod nonsmooth;

@@ -7,14 +7,15 @@
 //! (`crate::partition`) keeps each strut's end with enough of its cables
 //! node by node; what it cannot see is left to this module: on nsdd's own
 //! partition the set-up merges such a subdomain into a neighbour
-//! ([`Decomposition::merge_target`]) and tries again. One failure names one
-//! subdomain; in a process that holds every subdomain a pass then factors
-//! the others too and merges every indefinite one at once, then only the
-//! subdomains the merges made, and so on ([`merge_indefinite`]): a
-//! tensegrity grid cut in 16 whose cuts leave most subdomains indefinite
-//! no longer pays a whole set-up (interiors, deluxe blocks, coarse problem)
-//! per merge. Under MPI each rank holds its block of subdomains only, and
-//! the merges go one agreed error at a time ([`merged_for`]).
+//! ([`Decomposition::merge_target`]) and tries again
+//! ([`merges_indefinite`] says when). One failure names one subdomain; in
+//! a process that holds every subdomain a pass then factors the others too
+//! and merges every indefinite one at once, then only the subdomains the
+//! merges made, and so on (as [`merge_indefinite_subdomains`] does from
+//! scratch): a tensegrity grid cut in 64 whose cuts leave most subdomains
+//! indefinite no longer pays a whole set-up (interiors, deluxe blocks,
+//! coarse problem) per merge. Under MPI each rank holds its block of
+//! subdomains only, and the merges go one agreed error at a time.
 
 use crate::decomposition::{Decomposition, Merge};
 use crate::error::Error;
@@ -31,7 +32,7 @@ use std::collections::HashSet;
 /// subdomain indefinite where the whole structure is not) and the
 /// partition is nsdd's own. A partition given in `elements.subdomain` is
 /// the user's to change.
-pub(crate) fn merges_indefinite(model: &Model, scene: &Scene) -> bool {
+pub fn merges_indefinite(model: &Model, scene: &Scene) -> bool {
     scene.elements.subdomain.is_empty() && model.elements.iter().any(|el| el.geo < 0.0)
 }
 
@@ -85,14 +86,59 @@ pub(crate) fn merged_all_for(
         subdomain: *subdomain,
         into,
     };
-    // The pass runs on the failed structure; its merges are made on both.
-    let mut merges = vec![first];
-    let mut merged = on.merge_all(model, &[first]);
+    // The passes run on the failed structure; their merges are made on
+    // `dec`, numbered alike.
+    let merges = passes(model, on, vec![first], ordering);
+    Some(dec.merge_all(base, &merges))
+}
+
+/// `dec` with every subdomain that is indefinite on its own (and has a
+/// neighbour) merged into a neighbour, by passes: each factors the
+/// subdomains not yet known to factor and merges every indefinite one at
+/// once ([`Decomposition::merge_all`], the neighbour from
+/// [`Decomposition::merge_target`] at the node its factorization names),
+/// until none is left. A clone of `dec` when none is indefinite. What a
+/// solve on nsdd's own partition does when it meets such a subdomain
+/// (`nsdd partition` reports the count it ends with); for a decomposition
+/// of one's own before [`crate::dd::DdSolver::new`].
+///
+/// ```
+/// use nsdd::decomposition::Decomposition;
+/// use nsdd::generate::{tensegrity, TensegrityParams};
+/// use nsdd::merging::merge_indefinite_subdomains;
+/// use nsdd::model::Model;
+/// use nsdd::partition::Partition;
+/// use nsdd::subdomain::SubdomainOperator;
+///
+/// let scene = tensegrity(&TensegrityParams { nx: 3, ny: 3, ..Default::default() });
+/// let model = Model::from_scene(&scene).unwrap();
+/// let dec = Decomposition::new(&model, Partition::bisection(&model, 8).unwrap());
+/// let merged = merge_indefinite_subdomains(&model, &dec, Default::default());
+/// assert!(merged.len() < 8);
+/// for (s, sd) in merged.subdomains.iter().enumerate() {
+///     assert!(SubdomainOperator::new(s, &model, sd, 1, Default::default()).is_ok());
+/// }
+/// ```
+pub fn merge_indefinite_subdomains(model: &Model, dec: &Decomposition, ordering: OrderingChoice) -> Decomposition {
+    let merges = passes(model, dec, Vec::new(), ordering);
+    match merges.is_empty() {
+        true => dec.clone(),
+        false => dec.merge_all(model, &merges),
+    }
+}
+
+/// The merges (ids of `on`) of passes over `on` with `first` made first.
+fn passes(model: &Model, on: &Decomposition, first: Vec<Merge>, ordering: OrderingChoice) -> Vec<Merge> {
+    let mut merged = match first.is_empty() {
+        true => on.clone(),
+        false => on.merge_all(model, &first),
+    };
+    let mut merges = first;
     let mut fine = HashSet::new();
     loop {
         let more = indefinite_pass(model, &merged, ordering, &mut fine);
         if more.is_empty() {
-            break;
+            return merges;
         }
         // Ids of `merged` → ids of `on`: each merged subdomain's lowest
         // original id (the numbering of `merge_all`).
@@ -103,7 +149,6 @@ pub(crate) fn merged_all_for(
         }));
         merged = merged.merge_all(model, &more);
     }
-    Some(dec.merge_all(base, &merges))
 }
 
 /// For each subdomain of `merged` (made from `on` by merges), the lowest

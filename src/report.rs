@@ -270,6 +270,9 @@ pub struct SubdomainInfo {
     pub mechanisms: Option<usize>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub error: Option<String>,
+    /// Whether the error is an indefinite matrix.
+    #[serde(skip)]
+    pub indefinite: bool,
 }
 
 /// What `nsdd partition` prints.
@@ -282,6 +285,11 @@ pub struct PartitionReport {
     pub singular: Vec<(usize, usize)>,
     /// Whether `monolevel` applies (no singular subdomain, more than one).
     pub monolevel_applies: bool,
+    /// Where subdomains are indefinite on their own and a solve would
+    /// merge them into neighbours (compressed struts on nsdd's own
+    /// partition): the subdomains it would start from.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub subdomains_after_merging: Option<usize>,
 }
 
 /// Partitions the scene into `subdomains` parts (or the user partition of
@@ -303,7 +311,7 @@ pub fn partition_report(scene: &Scene, subdomains: usize) -> Result<PartitionRep
                     nsdd::subdomain::local_mechanisms(&op, &model, sd),
                     None,
                 ),
-                Err(e) => (None, None, Some(e.to_string())),
+                Err(e) => (None, None, Some(e)),
             };
             SubdomainInfo {
                 id,
@@ -311,7 +319,8 @@ pub fn partition_report(scene: &Scene, subdomains: usize) -> Result<PartitionRep
                 dofs: sd.dofs.len(),
                 kernel_dim,
                 mechanisms,
-                error,
+                indefinite: matches!(error, Some(Error::IndefiniteSubdomain { .. })),
+                error: error.map(|e| e.to_string()),
             }
         })
         .collect();
@@ -320,12 +329,16 @@ pub fn partition_report(scene: &Scene, subdomains: usize) -> Result<PartitionRep
         .filter_map(|i| i.kernel_dim.filter(|&k| k > 0).map(|k| (i.id, k)))
         .collect();
     let monolevel_applies = dec.len() > 1 && infos.iter().all(|i| i.kernel_dim == Some(0));
+    let indefinite = infos.iter().any(|i| i.indefinite);
+    let subdomains_after_merging = (indefinite && nsdd::merging::merges_indefinite(&model, scene))
+        .then(|| nsdd::merging::merge_indefinite_subdomains(&model, &dec, scene.solver.ordering).len());
     Ok(PartitionReport {
         scene: model.name.clone(),
         quality,
         subdomains: infos,
         singular,
         monolevel_applies,
+        subdomains_after_merging,
     })
 }
 
@@ -392,7 +405,17 @@ impl PartitionReport {
             .filter(|i| i.error.is_some())
             .map(|i| i.id.to_string())
             .collect();
-        if !failed.is_empty() {
+        if let (false, Some(n)) = (failed.is_empty(), self.subdomains_after_merging) {
+            let _ = writeln!(
+                s,
+                "factorization       failed for subdomain{} {}: a solve merges the ones indefinite on their own \
+                 (compressed struts cut off from the cables that hold them) into neighbours and starts from {n} \
+                 subdomain{} (a nonsmooth cg may merge more at later slack sets)",
+                if failed.len() > 1 { "s" } else { "" },
+                failed.join(", "),
+                if n > 1 { "s" } else { "" }
+            );
+        } else if !failed.is_empty() {
             let _ = writeln!(
                 s,
                 "factorization       failed for subdomain{} {}: no DD method can use this partition",

@@ -543,10 +543,46 @@ fn partition_reports_quality_and_kernels() {
             "{sd}"
         );
     }
+    assert!(v.get("subdomains_after_merging").is_none(), "{v}");
     let out = nsdd(&["partition", s(&grid)]);
     ok(&out);
     assert!(text(&out.stdout).contains("singular subdomains"));
     assert!(text(&out.stdout).contains("kernel  mechanisms"));
+}
+
+/// The bundled tensegrity grid cut in 16 leaves subdomains indefinite on
+/// their own: `nsdd partition` names them and says how many subdomains a
+/// solve starts from once they are merged, which is what `multilevel`
+/// then reports.
+#[test]
+fn partition_report_tells_what_merging_leaves() {
+    let scene = root().join("scenes/tensegrity-2x2.toml");
+    let out = nsdd(&["partition", s(&scene), "--subdomains", "16", "--json"]);
+    ok(&out);
+    let v: Value = serde_json::from_str(&text(&out.stdout)).unwrap();
+    let after = v["subdomains_after_merging"].as_u64().expect("merging predicted");
+    assert!((1..16).contains(&after), "{after}");
+    let text_out = nsdd(&["partition", s(&scene), "--subdomains", "16"]);
+    ok(&text_out);
+    assert!(
+        text(&text_out.stdout).contains(&format!("starts from {after} subdomain")),
+        "{}",
+        text(&text_out.stdout)
+    );
+    let d = tmp("merging");
+    let result = d.join("r.json");
+    ok(&nsdd(&[
+        "solve",
+        s(&scene),
+        "--method",
+        "multilevel",
+        "--subdomains",
+        "16",
+        "--out",
+        s(&result),
+    ]));
+    let r: Value = serde_json::from_str(&std::fs::read_to_string(&result).unwrap()).unwrap();
+    assert_eq!(r["subdomains"].as_u64(), Some(after));
 }
 
 fn csv_rows(p: &Path) -> (String, Vec<Vec<String>>) {
