@@ -151,6 +151,30 @@ fn passes(model: &Model, on: &Decomposition, first: Vec<Merge>, ordering: Orderi
     }
 }
 
+/// The error `e` of a set-up on `dec` that merging could not get past
+/// (`merging` on, no merge left to make), saying so where `dec` came from
+/// merges: down to one subdomain, the structure itself is indefinite (as
+/// `direct` would say); above one, the subdomain has no neighbour left or
+/// every MPI rank holds one subdomain.
+pub(crate) fn past_merging(merging: bool, dec: &Decomposition, e: Error) -> Error {
+    match e {
+        Error::IndefiniteSubdomain { subdomain, message } if merging && !dec.merged.is_empty() => {
+            let asked = dec.len() + dec.merged.len();
+            let to = match dec.len() {
+                1 => "one, the whole structure, which is not positive definite itself".to_string(),
+                n => format!("{n}, which no further merge reduces (no neighbour left, or one per MPI rank)"),
+            };
+            Error::IndefiniteSubdomain {
+                subdomain,
+                message: format!(
+                    "{message}; the set-up merged the subdomains indefinite on their own from {asked} down to {to}"
+                ),
+            }
+        }
+        e => e,
+    }
+}
+
 /// For each subdomain of `merged` (made from `on` by merges), the lowest
 /// id in `on` of the subdomains it joins.
 fn lowest_ids(on: &Decomposition, merged: &Decomposition) -> Vec<usize> {

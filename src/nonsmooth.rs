@@ -925,6 +925,9 @@ impl NonsmoothCg {
                     outer -= 1;
                     continue;
                 }
+                Err(e) if !slack.contains(&true) => {
+                    return Err(crate::merging::past_merging(self.merging, &self.dec, e));
+                }
                 // Removing cables can leave a subdomain with a mechanism
                 // whose round-off pivot reads as indefinite: both are what
                 // the softened step is for. If the softened set-up fails
@@ -943,7 +946,7 @@ impl NonsmoothCg {
                                 outer -= 1;
                                 continue;
                             }
-                            return Err(failure);
+                            return Err(crate::merging::past_merging(self.merging, &self.dec, failure));
                         }
                         Err(e) => return Err(e),
                     }
@@ -1144,7 +1147,7 @@ impl NonsmoothCg {
                         violation = 0.0;
                         continue;
                     }
-                    return Err(failure);
+                    return Err(crate::merging::past_merging(self.merging, &self.dec, failure));
                 }
                 let mut elongations = self.local_elongations(model, &u);
                 let mut u = u;

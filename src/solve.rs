@@ -34,7 +34,7 @@ use crate::decomposition::Decomposition;
 use crate::direct::DirectSolver;
 use crate::error::{Error, Result};
 use crate::factor::OrderingKind;
-use crate::merging::{merged_all_for, merged_for, merges_indefinite};
+use crate::merging::{merged_all_for, merged_for, merges_indefinite, past_merging};
 use crate::model::Model;
 use crate::nonsmooth::{NonsmoothCg, NonsmoothOptions};
 use crate::outcome::{Outcome, Status};
@@ -209,7 +209,7 @@ pub fn prepare_in(model: &Model, scene: &Scene, opts: &SolveOptions, placement: 
                         };
                         match merged {
                             Some(m) => dec = m,
-                            None => return Err(e),
+                            None => return Err(past_merging(merging, &dec, e)),
                         }
                     }
                 }
