@@ -56,11 +56,11 @@ pub(crate) fn merged_for(
     }
 }
 
-/// [`merged_for`] (one process: `ranks = 1`), then [`merge_indefinite`] on
-/// the structure `model` of the failed set-up, whose decomposition
-/// `failed` numbers its subdomains as `dec` does (a nonsmooth step's
-/// restricted partition), or `dec` itself: the merges it finds are made
-/// on `dec`.
+/// [`merged_for`] in a process that holds every subdomain, followed by
+/// passes as [`merge_indefinite_subdomains`] makes them, over the structure
+/// the set-up failed on: `failed`, whose decomposition numbers its
+/// subdomains as `dec` does (a nonsmooth step's restricted partition), or
+/// `base` and `dec` themselves. The merges are made on `dec`.
 pub(crate) fn merged_all_for(
     merging: bool,
     base: &Model,
