@@ -33,7 +33,7 @@ use std::collections::HashSet;
 /// partition is nsdd's own. A partition given in `elements.subdomain` is
 /// the user's to change.
 pub fn merges_indefinite(model: &Model, scene: &Scene) -> bool {
-    scene.elements.subdomain.is_empty() && model.elements.iter().any(|el| el.geo < 0.0)
+    scene.elements.subdomain.is_empty() && model.has_struts()
 }
 
 /// The decomposition to try after the set-up error `e` on `dec`, if

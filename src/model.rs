@@ -508,6 +508,14 @@ impl Model {
         (k / 3, k % 3)
     }
 
+    /// Whether some element is a strut: compressed, with geometric
+    /// stiffness, so its transverse stiffness is negative and a subdomain
+    /// holding it without the cables that stabilise it can be indefinite
+    /// where the whole structure is not.
+    pub fn has_struts(&self) -> bool {
+        self.elements.iter().any(|el| el.geo < 0.0)
+    }
+
     /// A displacement scale for relative measures: the largest element length.
     pub fn length_scale(&self) -> f64 {
         self.elements.iter().map(|e| e.length).fold(0.0, f64::max)

@@ -462,19 +462,17 @@ fn mechanism_message(model: &Model, slack: &[bool]) -> String {
 /// then the subdomain's error, with the set it was met on.
 fn set_failure(model: &Model, slack: &[bool], e: Error) -> Error {
     match e {
-        Error::IndefiniteSubdomain { subdomain, message } if model.elements.iter().any(|el| el.geo < 0.0) => {
-            Error::IndefiniteSubdomain {
-                subdomain,
-                message: format!(
-                    "{message}, in the structure without its {} slack cables: compressed elements with \
+        Error::IndefiniteSubdomain { subdomain, message } if model.has_struts() => Error::IndefiniteSubdomain {
+            subdomain,
+            message: format!(
+                "{message}, in the structure without its {} slack cables: compressed elements with \
                      geometric stiffness can make a subdomain indefinite where the whole structure is not \
                      (`multilevel`, whose subdomains keep their slack cables' stiffness, `direct`, fewer \
                      subdomains or nsdd's own partition, which merges such a subdomain into a neighbour, may \
                      solve it)",
-                    slack.iter().filter(|&&s| s).count()
-                ),
-            }
-        }
+                slack.iter().filter(|&&s| s).count()
+            ),
+        },
         e => Error::Mechanism(format!("{} ({e})", mechanism_message(model, slack))),
     }
 }

@@ -460,7 +460,7 @@ fn with_strut_hint(scene: &Scene, e: Error) -> Error {
         Error::IndefiniteSubdomain { subdomain, message }
             if !message.contains("`direct`")
                 && !scene.elements.subdomain.is_empty()
-                && Model::from_scene(scene).is_ok_and(|m| m.elements.iter().any(|el| el.geo < 0.0)) =>
+                && Model::from_scene(scene).is_ok_and(|m| m.has_struts()) =>
         {
             Error::IndefiniteSubdomain {
                 subdomain,
