@@ -213,16 +213,6 @@ fn tensegrity_slack_cables_keep_their_geometric_stiffness() {
     }
 }
 
-/// The scene with nsdd's own partition into `n` subdomains written into
-/// `elements.subdomain`: the same subdomains, but the user's, which the
-/// set-up does not change.
-fn with_user_partition(scene: &Scene, n: usize) -> Scene {
-    let model = Model::from_scene(scene).unwrap();
-    let mut scene = scene.clone();
-    scene.elements.subdomain = nsdd::partition::Partition::bisection(&model, n).unwrap().part_of;
-    scene
-}
-
 /// The notes of a result that say subdomains were merged; one is a
 /// warning when a single subdomain is left (a slower direct solve).
 fn merge_notes(r: &SolveResult) -> Vec<&String> {

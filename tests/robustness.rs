@@ -986,11 +986,9 @@ fn indefinite_subdomain_is_named_or_merged() {
         ..Default::default()
     });
     assert!(scene.effects.geometric_stiffness);
-    let model = nsdd::model::Model::from_scene(&scene).unwrap();
     let mut found = 0;
     for n in [2, 4, 8, 16] {
-        let mut users = scene.clone();
-        users.elements.subdomain = nsdd::partition::Partition::bisection(&model, n).unwrap().part_of;
+        let users = with_user_partition(&scene, n);
         match solve(&users, &opts(Method::Multilevel, n, 1e-8)) {
             Err(Error::IndefiniteSubdomain { subdomain, message }) => {
                 assert!(subdomain < n);

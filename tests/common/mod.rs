@@ -266,3 +266,13 @@ pub fn taut_tower(ea_cable: f64) -> Scene {
         ..Default::default()
     })
 }
+
+/// The scene with nsdd's own partition into `n` subdomains written into
+/// `elements.subdomain`: the same subdomains, but the user's, which the
+/// set-up does not change (no merging of indefinite subdomains).
+pub fn with_user_partition(scene: &Scene, n: usize) -> Scene {
+    let model = nsdd::model::Model::from_scene(scene).unwrap();
+    let mut scene = scene.clone();
+    scene.elements.subdomain = nsdd::partition::Partition::bisection(&model, n).unwrap().part_of;
+    scene
+}
