@@ -132,9 +132,9 @@ fn subdomain_notes(model: &Model, scene: &Scene, opts: &SolveOptions, dec: &Deco
             ("", "")
         };
         notes.push(format!(
-            "{warning}subdomains: {n}, not the {} partitioned: {k} merge{} ({}{}; ids as they were at each merge) \
-             of a subdomain indefinite on its own (compressed struts cut off from the cables that hold them) into \
-             its neighbour{whole}",
+            "{warning}subdomains: {n}, not the {} partitioned: {k} merge{} ({}{}; ids of the partition each \
+             round of merges was made on) of a subdomain indefinite on its own (compressed struts cut off from the \
+             cables that hold them) into its neighbour{whole}",
             n + k,
             if k == 1 { "" } else { "s" },
             pairs.join(", "),
